@@ -1,0 +1,591 @@
+"""HDF5 result archives and meshio export.
+
+One :class:`~fastmem.result.Result` is stored in one self-describing HDF5 file
+(conventionally with the suffix ``.h5``)::
+
+    /            attrs: format = "fastmem-result", format_version, fastmem_version,
+                 created (ISO 8601, UTC), scene (JSON of result.parameters),
+                 method, path, converged, n_newton
+    /mesh        vertices (N, 2), triangles (M, 3)
+    /solution    u1, u2, lambda, r1, r2, active (N,)
+    /estimators  only with an estimate: one (M,) dataset per map; attrs = totals
+    /history     one 1-D dataset per column; attr ``columns`` lists them in order
+    /timings     attrs: phase name -> seconds
+
+Arrays are stored with their own dtype and read back bit-exactly.  Arrays with
+more than ``2**16`` elements are chunked and compressed losslessly (gzip level
+1 with the shuffle filter: fast, and effective on float64 fields); smaller ones
+are stored contiguously, where compression gains nothing.
+
+Writes are atomic: the archive is written to a temporary file in the target
+folder (named ``.{name}.tmp-XXXXXXXX``), flushed to disk and renamed onto the
+final name.  If anything fails, the temporary file is removed and an archive
+already present under the final name is left untouched.
+
+Every problem with an archive raises :class:`~fastmem.errors.ArchiveError`
+(a subclass of :class:`OSError`) naming the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.metadata
+import json
+import logging
+import os
+import shutil
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .errors import ArchiveError, ParameterError
+from .result import Estimate, Result
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "export", "info", "load", "save"]
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "fastmem-result"
+"""Value of the root attribute ``format`` of every fastmem archive."""
+
+FORMAT_VERSION = 1
+"""Archive layout version written by this fastmem; older or equal versions are readable."""
+
+_COMPRESS_ABOVE = 2**16
+_SOLUTION = {"u1": "u1", "u2": "u2", "lambda": "lam", "r1": "r1", "r2": "r2", "active": "active"}
+_REQUIRED_DATASETS = ("mesh/vertices", "mesh/triangles") + tuple(f"solution/{n}" for n in _SOLUTION)
+_REQUIRED_GROUPS = ("history", "timings")
+_REQUIRED_ATTRS = ("scene", "method", "path", "converged", "n_newton")
+_EXPORT_SUFFIXES = (".vtu", ".xdmf")
+
+
+def _fastmem_version() -> str:
+    try:
+        return importlib.metadata.version("fastmem")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
+# ----------------------------------------------------------------------------- writing helpers
+
+
+def _json_default(obj):
+    """Turn numpy scalars/arrays and paths into JSON-safe Python objects."""
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+
+def _scene_json(parameters) -> str:
+    try:
+        return json.dumps(dict(parameters), default=_json_default)
+    except (TypeError, ValueError) as exc:
+        raise ArchiveError(f"result.parameters cannot be stored as JSON: {exc}") from exc
+
+
+def _check_name(kind: str, name) -> str:
+    if not isinstance(name, str) or not name or "/" in name or name == ".":
+        raise ArchiveError(
+            f"{kind} name {name!r} cannot be stored: it must be a non-empty string without '/'"
+        )
+    return name
+
+
+def _write_array(group: h5py.Group, name: str, data) -> h5py.Dataset:
+    """Store ``data`` as ``group/name`` with its dtype; compress large arrays."""
+    arr = np.asarray(data)
+    if arr.dtype.kind not in "biufc":
+        raise ArchiveError(
+            f"cannot store {group.name.rstrip('/')}/{name} with dtype {arr.dtype}: "
+            "only boolean and numeric arrays round-trip exactly"
+        )
+    kwargs = {}
+    if arr.size > _COMPRESS_ABOVE:
+        # Chunks of whole rows, about 2**16 elements each (512 KiB of float64), so that a
+        # chunk fits the default 1 MiB HDF5 chunk cache and rows are never split.
+        row = max(1, arr.size // arr.shape[0])
+        chunks = (max(1, min(arr.shape[0], _COMPRESS_ABOVE // row)),) + arr.shape[1:]
+        kwargs = {"chunks": chunks, "compression": "gzip", "compression_opts": 1, "shuffle": True}
+    try:
+        return group.create_dataset(name, data=arr, **kwargs)
+    except TypeError as exc:
+        raise ArchiveError(
+            f"cannot store {group.name.rstrip('/')}/{name} with dtype {arr.dtype}: {exc}"
+        ) from exc
+
+
+def _write_header(f: h5py.File, result: Result) -> None:
+    f.attrs["format"] = FORMAT
+    f.attrs["format_version"] = np.int64(FORMAT_VERSION)
+    f.attrs["fastmem_version"] = _fastmem_version()
+    f.attrs["created"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    f.attrs["scene"] = _scene_json(result.parameters)
+    f.attrs["method"] = str(result.method)
+    f.attrs["path"] = str(result.path)
+    f.attrs["converged"] = np.bool_(result.converged)
+    f.attrs["n_newton"] = np.int64(result.n_newton)
+
+
+def _write_mesh(f: h5py.File, mesh) -> None:
+    g = f.create_group("mesh")
+    _write_array(g, "vertices", mesh.vertices)
+    _write_array(g, "triangles", mesh.triangles)
+
+
+def _write_solution(f: h5py.File, result: Result) -> None:
+    g = f.create_group("solution")
+    for name, field in _SOLUTION.items():
+        _write_array(g, name, getattr(result, field))
+
+
+def _write_estimate(f: h5py.File, estimate: Estimate) -> None:
+    g = f.create_group("estimators", track_order=True)
+    for key, value in estimate.totals.items():
+        g.attrs[key] = value
+    for key, value in estimate.maps.items():
+        _write_array(g, _check_name("estimator map", key), value)
+
+
+def _write_history(f: h5py.File, history: dict) -> None:
+    g = f.create_group("history", track_order=True)
+    names = [_check_name("history column", k) for k in history]
+    g.attrs.create("columns", names, dtype=h5py.string_dtype())
+    for name in names:
+        column = np.asarray(history[name])
+        if column.ndim != 1:
+            raise ArchiveError(f"history column {name!r} must be 1-D, got shape {column.shape}")
+        _write_array(g, name, column)
+
+
+def _write_timings(f: h5py.File, timings: dict) -> None:
+    g = f.create_group("timings", track_order=True)
+    for key, seconds in timings.items():
+        g.attrs[str(key)] = float(seconds)
+
+
+def _umask() -> int:
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _final_mode(path: Path) -> int:
+    """Permissions the file would get from a plain ``open(path, "w")``."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_umask()
+
+
+def _target(path) -> Path:
+    try:
+        p = Path(os.fspath(path))
+    except TypeError as exc:
+        raise ArchiveError(f"archive path must be str or os.PathLike, got {path!r}") from exc
+    parent = p.parent
+    if not parent.is_dir():
+        raise ArchiveError(f"cannot write {p}: directory {parent} does not exist")
+    if p.is_dir():
+        raise ArchiveError(f"cannot write {p}: it is a directory")
+    return p
+
+
+def _fsync(path: Path) -> None:
+    with open(path, "rb") as fh:
+        os.fsync(fh.fileno())
+
+
+@contextlib.contextmanager
+def _atomic_file(target: Path, suffix: str = ""):
+    """Yield a temporary path next to ``target``; rename it onto ``target`` on success."""
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.tmp-", suffix=suffix, dir=target.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        _fsync(tmp)
+        os.chmod(tmp, _final_mode(target))
+        os.replace(tmp, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+# ----------------------------------------------------------------------------- public: save
+
+
+def save(result: Result, path) -> None:
+    """Write a result to an HDF5 archive, atomically.
+
+    Parameters
+    ----------
+    result : fastmem.result.Result
+        The result to store (mesh, solution, optional estimate, history,
+        timings, parameters and scalars).
+    path : str or os.PathLike
+        Destination file, conventionally with the suffix ``.h5`` (not enforced).
+        An existing file is replaced only once the new archive is complete.
+
+    Raises
+    ------
+    ArchiveError
+        If the parent directory does not exist, a field cannot be stored
+        (e.g. a history column name containing ``/`` or an unsupported dtype),
+        or writing fails at the operating-system level.  Any exception leaves
+        no temporary file behind and no (new) file under ``path``.
+
+    Notes
+    -----
+    The layout is described in the module docstring.  ``result.parameters`` is
+    stored as JSON; numpy scalars and arrays in it become Python numbers and
+    lists.
+    """
+    target = _target(path)
+    try:
+        with _atomic_file(target) as tmp:
+            with h5py.File(tmp, "w", track_order=True) as f:
+                _write_header(f, result)
+                _write_mesh(f, result.mesh)
+                _write_solution(f, result)
+                if result.estimate is not None:
+                    _write_estimate(f, result.estimate)
+                _write_history(f, result.history)
+                _write_timings(f, result.timings)
+    except ArchiveError:
+        raise
+    except OSError as exc:
+        raise ArchiveError(f"cannot write archive {target}: {exc}") from exc
+    logger.info("saved result archive %s", target)
+
+
+# ----------------------------------------------------------------------------- reading helpers
+
+
+def _as_str(value) -> str:
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.ndarray) and value.shape == ():
+        return _as_str(value[()])
+    return str(value)
+
+
+def _as_py(value):
+    """Convert an attribute value read by h5py to a plain Python object."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8")
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def _check_header(f: h5py.File, p: Path) -> None:
+    fmt = f.attrs.get("format")
+    if fmt is None or _as_str(fmt) != FORMAT:
+        raise ArchiveError(
+            f"foreign HDF5 file {p}: root attribute format is {fmt!r}, expected {FORMAT!r}"
+        )
+    raw = f.attrs.get("format_version")
+    try:
+        version = int(raw)
+    except (TypeError, ValueError):
+        raise ArchiveError(
+            f"corrupt or truncated archive {p}: bad format_version {raw!r}"
+        ) from None
+    if version > FORMAT_VERSION:
+        written_by = _as_str(f.attrs.get("fastmem_version", "unknown"))
+        raise ArchiveError(
+            f"{p} has archive format_version {version} (written by fastmem {written_by}), "
+            f"but this fastmem ({_fastmem_version()}) reads format_version <= {FORMAT_VERSION}: "
+            "it needs a newer fastmem"
+        )
+    missing = [f"attribute {a}" for a in _REQUIRED_ATTRS if a not in f.attrs]
+    missing += [f"/{d}" for d in _REQUIRED_DATASETS if not isinstance(f.get(d), h5py.Dataset)]
+    missing += [f"/{g}" for g in _REQUIRED_GROUPS if not isinstance(f.get(g), h5py.Group)]
+    if missing:
+        raise ArchiveError(f"corrupt or truncated archive {p}: missing {', '.join(missing)}")
+
+
+@contextlib.contextmanager
+def _reading(path):
+    """Open an archive for reading after checking it; wrap read errors in ArchiveError."""
+    try:
+        p = Path(os.fspath(path))
+    except TypeError as exc:
+        raise ArchiveError(f"archive path must be str or os.PathLike, got {path!r}") from exc
+    if not p.exists():
+        raise ArchiveError(f"archive {p} does not exist")
+    if not p.is_file():
+        raise ArchiveError(f"archive {p} is not a regular file")
+    try:
+        if not h5py.is_hdf5(p):
+            raise ArchiveError(f"{p} is not an HDF5 file")
+        with h5py.File(p, "r") as f:
+            _check_header(f, p)
+            yield f, p
+    except ArchiveError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
+        raise ArchiveError(f"corrupt or truncated archive {p}: {exc}") from exc
+
+
+def _history_names(g: h5py.Group, p: Path) -> list:
+    if "columns" in g.attrs:
+        names = [_as_str(n) for n in np.atleast_1d(g.attrs["columns"])]
+    else:
+        names = [k for k, v in g.items() if isinstance(v, h5py.Dataset)]
+    for name in names:
+        if not isinstance(g.get(name), h5py.Dataset):
+            raise ArchiveError(f"corrupt or truncated archive {p}: missing /history/{name}")
+    return names
+
+
+def _attrs_dict(obj) -> dict:
+    return {str(k): _as_py(v) for k, v in obj.attrs.items()}
+
+
+# ----------------------------------------------------------------------------- public: load, info
+
+
+def load(path) -> Result:
+    """Read a result archive written by :func:`save`.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The archive (``.h5``).
+
+    Returns
+    -------
+    fastmem.result.Result
+        Every field as saved, arrays bit-exact with their dtypes; ``estimate``
+        is None when the archive has no ``/estimators`` group, and
+        ``parameters`` is the decoded JSON (numpy values came back as Python
+        numbers and lists).
+
+    Raises
+    ------
+    ArchiveError
+        If the file does not exist, is not HDF5, is a foreign HDF5 file, has a
+        newer ``format_version`` than this fastmem reads, lacks a required group
+        or dataset, is truncated or otherwise unreadable.
+    """
+    from .mesh import Mesh
+
+    with _reading(path) as (f, p):
+        vertices = f["mesh/vertices"][()]
+        triangles = f["mesh/triangles"][()]
+        n = vertices.shape[0] if vertices.ndim >= 1 else -1
+        fields = {}
+        for name, field in _SOLUTION.items():
+            arr = f["solution"][name][()]
+            if arr.shape != (n,):
+                raise ArchiveError(
+                    f"corrupt archive {p}: /solution/{name} has shape {arr.shape}, "
+                    f"expected ({n},) to match /mesh/vertices"
+                )
+            fields[field] = arr
+        estimate = None
+        if "estimators" in f:
+            g = f["estimators"]
+            maps = {k: v[()] for k, v in g.items() if isinstance(v, h5py.Dataset)}
+            estimate = Estimate(totals=_attrs_dict(g), maps=maps)
+        h = f["history"]
+        history = {name: h[name][()] for name in _history_names(h, p)}
+        timings = {k: float(v) for k, v in f["timings"].attrs.items()}
+        attrs = f.attrs
+        parameters = json.loads(_as_str(attrs["scene"]))
+        mesh = Mesh(vertices, triangles)
+        result = Result(
+            mesh=mesh,
+            **fields,
+            history=history,
+            timings=timings,
+            parameters=parameters,
+            converged=bool(attrs["converged"]),
+            n_newton=int(attrs["n_newton"]),
+            method=_as_str(attrs["method"]),
+            path=_as_str(attrs["path"]),
+            estimate=estimate,
+        )
+    logger.info("loaded result archive %s", p)
+    return result
+
+
+def info(path) -> dict:
+    """Summarise an archive without reading its large arrays.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The archive (``.h5``).
+
+    Returns
+    -------
+    dict
+        Keys: ``file`` (str), ``format_version`` (int), ``fastmem_version``,
+        ``created`` (str), ``parameters`` (dict), ``method``, ``path`` (the
+        linear-step path, str), ``converged`` (bool), ``n_newton`` (int),
+        ``n_vertices``, ``n_triangles`` (int), ``has_estimate`` (bool),
+        ``estimator_totals`` (dict of str to float, empty without an estimate),
+        ``estimator_maps`` (list of str), ``timings`` (dict of str to float),
+        ``history_columns`` (list of str) and ``n_history_rows`` (int, the
+        length of the longest history column, 0 without history).
+
+    Raises
+    ------
+    ArchiveError
+        For the same reasons as :func:`load`.
+    """
+    with _reading(path) as (f, p):
+        attrs = f.attrs
+        h = f["history"]
+        columns = _history_names(h, p)
+        est = f.get("estimators")
+        summary = {
+            "file": str(p),
+            "format_version": int(attrs["format_version"]),
+            "fastmem_version": _as_str(attrs.get("fastmem_version", "unknown")),
+            "created": _as_str(attrs.get("created", "")),
+            "parameters": json.loads(_as_str(attrs["scene"])),
+            "method": _as_str(attrs["method"]),
+            "path": _as_str(attrs["path"]),
+            "converged": bool(attrs["converged"]),
+            "n_newton": int(attrs["n_newton"]),
+            "n_vertices": int(f["mesh/vertices"].shape[0]),
+            "n_triangles": int(f["mesh/triangles"].shape[0]),
+            "has_estimate": est is not None,
+            "estimator_totals": {} if est is None else _attrs_dict(est),
+            "estimator_maps": [] if est is None else list(est.keys()),
+            "timings": {k: float(v) for k, v in f["timings"].attrs.items()},
+            "history_columns": columns,
+            "n_history_rows": max((len(h[c]) for c in columns), default=0),
+        }
+    return summary
+
+
+# ----------------------------------------------------------------------------- public: export
+
+
+def _meshio_mesh(result: Result, pad_3d: bool):
+    import meshio
+
+    points = np.asarray(result.mesh.vertices, dtype=np.float64)
+    if pad_3d and points.shape[1] == 2:
+        points = np.column_stack([points, np.zeros(points.shape[0])])
+    point_data = {
+        "u1": np.asarray(result.u1),
+        "u2": np.asarray(result.u2),
+        "lambda": np.asarray(result.lam),
+        "gap": np.asarray(result.u1) - np.asarray(result.u2),
+        "active": np.asarray(result.active, dtype=np.float64),
+        "r1": np.asarray(result.r1),
+        "r2": np.asarray(result.r2),
+    }
+    cell_data = {}
+    if result.estimate is not None:
+        cell_data = {k: [np.asarray(v)] for k, v in result.estimate.maps.items()}
+    return meshio.Mesh(
+        points,
+        [("triangle", np.asarray(result.mesh.triangles))],
+        point_data=point_data,
+        cell_data=cell_data,
+    )
+
+
+def _export_xdmf(mesh, target: Path) -> Path:
+    """Write ``target`` (.xdmf) and its companion ``target.name + '.h5'`` via a temp folder."""
+    import meshio
+
+    companion = target.with_name(target.name + ".h5")
+    if companion.is_file() and h5py.is_hdf5(companion):
+        with h5py.File(companion, "r") as f:
+            is_archive = _as_str(f.attrs.get("format", "")) == FORMAT
+        if is_archive:
+            raise ArchiveError(
+                f"refusing to export {target}: its data file {companion} is a fastmem archive"
+            )
+    tmpdir = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    try:
+        # meshio names the heavy-data file after the .xdmf file (suffix replaced by .h5)
+        # and references it by basename, so write "<name>.xdmf" to get "<name>.h5".
+        staged = tmpdir / (target.name + ".xdmf")
+        meshio.write(staged, mesh, file_format="xdmf")
+        staged_h5 = staged.with_suffix(".h5")
+        _fsync(staged_h5)
+        _fsync(staged)
+        os.replace(staged_h5, companion)
+        os.replace(staged, target)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    return companion
+
+
+def export(result: Result, path) -> None:
+    """Write the mesh and nodal fields of a result for ParaView & co. through meshio.
+
+    Point data: ``u1``, ``u2``, ``lambda``, ``gap`` (``u1 - u2``), ``active``
+    (1.0 on the contact set, else 0.0), ``r1``, ``r2``.  Cell data: the
+    per-triangle estimator maps, when the result has an estimate.
+
+    Parameters
+    ----------
+    result : fastmem.result.Result
+        The result to export.
+    path : str or os.PathLike
+        Destination; the suffix selects the format: ``.vtu`` (VTK XML, points
+        padded to 3D with z = 0, one self-contained file) or ``.xdmf`` (XDMF3 with
+        its heavy data in a companion HDF5 file named ``<path>.h5``, e.g.
+        ``run.xdmf`` + ``run.xdmf.h5``, so it never collides with a ``run.h5``
+        result archive; keep both files together).
+
+    Raises
+    ------
+    ParameterError
+        If the suffix is neither ``.vtu`` nor ``.xdmf``.
+    ArchiveError
+        If the parent directory does not exist or writing fails.
+
+    Notes
+    -----
+    Writing is atomic per file: everything is written under temporary names in
+    the target folder and renamed when complete.  For ``.xdmf`` the companion
+    is renamed first and the ``.xdmf`` last.
+    """
+    try:
+        suffix = Path(os.fspath(path)).suffix.lower()
+    except TypeError as exc:
+        raise ArchiveError(f"export path must be str or os.PathLike, got {path!r}") from exc
+    if suffix not in _EXPORT_SUFFIXES:
+        raise ParameterError(
+            f"export format {suffix or '(no suffix)'!r} of {os.fspath(path)} is not supported; "
+            f"use one of {', '.join(_EXPORT_SUFFIXES)}"
+        )
+    target = _target(path)
+    try:
+        if suffix == ".vtu":
+            import meshio
+
+            mesh = _meshio_mesh(result, pad_3d=True)
+            with _atomic_file(target, suffix=suffix) as tmp:
+                meshio.write(tmp, mesh, file_format="vtu")
+            logger.info("exported %s", target)
+        else:
+            companion = _export_xdmf(_meshio_mesh(result, pad_3d=False), target)
+            logger.info("exported %s (heavy data in %s)", target, companion)
+    except ArchiveError:
+        raise
+    except OSError as exc:
+        raise ArchiveError(f"cannot export {target}: {exc}") from exc

@@ -1,0 +1,183 @@
+r"""Assembly of P1 matrices and load vectors.
+
+All P1 matrices of a mesh share one CSR sparsity pattern, the vertex graph
+(diagonal plus one entry per edge neighbour, columns sorted), built once per
+mesh together with a COO -> CSR position map (:mod:`fastmem.kernels.sparsity`)
+and cached on the mesh.  An assembly is then two parallel Numba passes: local
+matrices per triangle (COO values), and a gather into the CSR data array
+through the map (:mod:`fastmem.kernels.assembly`).  scipy's ``tocsr()`` (a
+sort and a duplicate sum) is never called.
+
+.. math::
+
+    A_{ab} = (\nabla\psi_b, \nabla\psi_a), \qquad
+    M_{ab} = (\psi_b, \psi_a), \qquad
+    B_a = (\psi_a, 1) = |\omega_a| / 3, \qquad
+    F_a = (f, \psi_a).
+
+Pattern decision: the stored pattern is the full vertex graph, also where an
+entry vanishes for geometric reasons (the stiffness across the hypotenuse of
+a right triangle pair is exactly zero).  Stiffness and mass then share
+``indptr``/``indices``, so sums such as ``A + c M`` keep the pattern; a solver
+that iterates many times with one operator may drop the zeros once
+(``eliminate_zeros``).
+
+Load vectors: a constant ``f`` is integrated exactly as ``f B`` (no
+quadrature); per-vertex values (P1 data) exactly as ``M f``; a callable
+``f(x, y)`` by a quadrature rule of degree ``degree`` (default 5), evaluated in
+one vectorised call on all quadrature points.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import scipy.sparse as sp
+
+from .errors import DataError, MeshError
+from .kernels import assembly as _k
+from .kernels import sparsity as _sp
+from .quadrature import quadrature_points, triangle_rule
+
+__all__ = [
+    "DEFAULT_LOAD_DEGREE",
+    "assemble_load",
+    "assemble_mass",
+    "assemble_stiffness",
+    "csr_structure",
+    "evaluate_callable",
+]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_LOAD_DEGREE = 5
+
+
+def csr_structure(mesh):
+    """Return ``(indptr, indices, offsets)`` of the mesh's P1 pattern (cached on the mesh).
+
+    ``indptr``/``indices`` are int32 while the number of stored entries fits,
+    else int64; ``offsets`` (M, 3, 3) uint16 is the COO -> CSR position map.
+    """
+    cache = mesh._cache
+    if "csr_structure" not in cache:
+        n = mesh.n_vertices
+        nnz = n + 2 * mesh.n_edges
+        index_dtype = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
+        row_len = 1 + np.bincount(mesh.edges.ravel(), minlength=n)
+        if row_len.max() > np.iinfo(np.uint16).max:
+            raise MeshError(
+                f"a vertex has {int(row_len.max()) - 1} neighbours; at most 65534 are supported"
+            )
+        indptr, indices = _sp.csr_pattern(n, mesh.edges, index_dtype)
+        offsets = _sp.position_map(mesh.triangles, indptr, indices)
+        cache["csr_structure"] = (indptr, indices, offsets)
+    return cache["csr_structure"]
+
+
+def _coef_array(mesh, coef, name):
+    if coef is None:
+        return np.ones(1)
+    c = np.ascontiguousarray(coef, dtype=np.float64).reshape(-1)
+    if c.size not in (1, mesh.n_triangles):
+        raise DataError(
+            f"{name} must be a scalar or have one value per triangle ({mesh.n_triangles}), "
+            f"got {c.size} values"
+        )
+    return c
+
+
+def _to_csr(mesh, vals):
+    indptr, indices, offsets = csr_structure(mesh)
+    data = _k.gather_csr(
+        vals, indptr, offsets, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local
+    )
+    n = mesh.n_vertices
+    mat = sp.csr_matrix((data, indices, indptr), shape=(n, n), copy=False)
+    mat.has_sorted_indices = True
+    return mat
+
+
+def assemble_stiffness(mesh, coef=None) -> sp.csr_matrix:
+    """P1 stiffness matrix ``(coef grad psi_b, grad psi_a)`` in CSR form.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    coef : float or ndarray of shape (M,), optional
+        Piecewise-constant coefficient (default 1).
+
+    Notes
+    -----
+    Convenience wrapper around the Numba kernels ``stiffness_local`` (parallel
+    over triangles) and ``gather_csr`` (parallel over rows).
+    """
+    vals = _k.stiffness_local(mesh.vertices, mesh.triangles, _coef_array(mesh, coef, "coef"))
+    return _to_csr(mesh, vals)
+
+
+def assemble_mass(mesh, coef=None) -> sp.csr_matrix:
+    """Consistent P1 mass matrix ``(coef psi_b, psi_a)`` in CSR form (same pattern as A)."""
+    vals = _k.mass_local(mesh.areas, _coef_array(mesh, coef, "coef"))
+    return _to_csr(mesh, vals)
+
+
+def evaluate_callable(f, x, y, name="f"):
+    """Evaluate a user callable ``f(x, y)`` on arrays, checking shape and finiteness."""
+    try:
+        val = f(x, y)
+    except Exception as exc:
+        raise DataError(f"{name}(x, y) raised {type(exc).__name__}: {exc}") from exc
+    val = np.asarray(val, dtype=np.float64) if np.ndim(val) else np.full(x.shape, float(val))
+    if val.shape != x.shape:
+        try:
+            val = np.broadcast_to(val, x.shape)
+        except ValueError as exc:
+            raise DataError(
+                f"{name}(x, y) returned shape {val.shape}, expected {x.shape} "
+                "(evaluate elementwise on the arrays x and y)"
+            ) from exc
+    if not np.isfinite(val).all():
+        raise DataError(f"{name}(x, y) returned NaN or inf at {int((~np.isfinite(val)).sum())} points")
+    return val
+
+
+def assemble_load(mesh, f, degree: int = DEFAULT_LOAD_DEGREE, name: str = "f") -> np.ndarray:
+    """Load vector ``F_a = (f, psi_a)``.
+
+    Parameters
+    ----------
+    mesh : Mesh
+    f : float, ndarray of shape (N,), or callable
+        Constant (integrated exactly: ``f * B``), nodal values of a P1
+        function (exactly: ``M f``), or ``f(x, y)`` evaluated vectorised at the
+        points of a quadrature rule of degree ``degree``.
+    degree : int
+        Quadrature degree for callables.
+    name : str
+        Name used in error messages.
+
+    Returns
+    -------
+    ndarray of shape (N,)
+    """
+    pp, pt, pl = mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local
+    if callable(f):
+        bary, w = triangle_rule(degree)
+        x, y = quadrature_points(mesh.vertices, mesh.triangles, bary)
+        fv = evaluate_callable(f, x, y, name)
+        local = (fv * w) @ bary  # (M, 3): sum_q w_q f(x_q) phi_i(x_q)
+        local *= mesh.areas[:, None]
+        return _k.gather_vector(np.ascontiguousarray(local), pp, pt, pl)
+    arr = np.asarray(f, dtype=np.float64)
+    if arr.ndim == 0:
+        return float(arr) * mesh.lumped_mass
+    if arr.shape != (mesh.n_vertices,):
+        raise DataError(
+            f"{name} as an array must have one value per vertex, shape ({mesh.n_vertices},), "
+            f"got {arr.shape}"
+        )
+    ft = arr[mesh.triangles]  # (M, 3)
+    local = (ft + ft.sum(axis=1, keepdims=True)) * (mesh.areas / 12.0)[:, None]
+    return _k.gather_vector(local, pp, pt, pl)

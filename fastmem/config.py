@@ -1,0 +1,77 @@
+"""Run-time settings: thread pools and Numba compilation flags.
+
+fastmem runs two kinds of parallel work: Numba kernels (``prange`` loops over
+triangles or vertex patches) and BLAS calls inside scipy/pyamg.  On a small
+machine the two pools compete for the same cores; measured on a 2-core machine,
+OpenBLAS at its default of 2 threads made pyamg 2.5-20x slower than with one
+thread.  fastmem therefore limits the BLAS pool to :data:`blas_threads` (default
+1) inside its solver phases, and leaves the Numba pool at
+:func:`numba.get_num_threads` unless :func:`set_threads` says otherwise.
+
+``FASTMATH_FLAGS`` is the single place where kernels take their fastmath
+setting.  ``nnan``/``ninf`` are deliberately absent: the active-set logic and
+``max(0, .)`` need IEEE semantics for NaN and infinity.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+
+from .errors import ParameterError
+
+__all__ = ["FASTMATH_FLAGS", "blas_limits", "get_threads", "set_threads"]
+
+FASTMATH_FLAGS = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
+_settings = {"blas_threads": int(os.environ.get("FASTMEM_BLAS_THREADS", "1"))}
+
+
+def _check_count(name, value):
+    if isinstance(value, bool) or not isinstance(value, (int,)) and not hasattr(value, "__index__"):
+        raise ParameterError(f"{name} must be a positive integer, got {value!r}")
+    value = int(value)
+    if value < 1:
+        raise ParameterError(f"{name} must be a positive integer, got {value!r}")
+    return value
+
+
+def set_threads(numba: int | None = None, blas: int | None = None) -> None:
+    """Set the Numba thread count and the BLAS thread limit used in solver phases.
+
+    Parameters
+    ----------
+    numba : int, optional
+        Threads for the parallel Numba kernels (at most ``NUMBA_NUM_THREADS``).
+    blas : int, optional
+        Threads the BLAS pool (OpenBLAS, MKL) may use inside solver phases.
+    """
+    if numba is not None:
+        import numba as _nb
+
+        n = _check_count("numba threads", numba)
+        if n > _nb.config.NUMBA_NUM_THREADS:
+            raise ParameterError(
+                f"numba threads must be <= NUMBA_NUM_THREADS={_nb.config.NUMBA_NUM_THREADS}, "
+                f"got {n}"
+            )
+        _nb.set_num_threads(n)
+    if blas is not None:
+        _settings["blas_threads"] = _check_count("blas threads", blas)
+
+
+def get_threads() -> dict:
+    """Return the current thread settings as ``{"numba": int, "blas": int}``."""
+    import numba as _nb
+
+    return {"numba": _nb.get_num_threads(), "blas": _settings["blas_threads"]}
+
+
+@contextlib.contextmanager
+def blas_limits(threads: int | None = None):
+    """Limit the BLAS thread pool to ``threads`` (default: the configured value) in a block."""
+    from threadpoolctl import threadpool_limits
+
+    n = _settings["blas_threads"] if threads is None else _check_count("blas threads", threads)
+    with threadpool_limits(limits=n, user_api="blas"):
+        yield

@@ -1,0 +1,202 @@
+r"""Linear steps of Newton-min: given an active set, return the next full triple.
+
+Two formulations (MATH.md sections 3.2 and 3.3) with the same interface::
+
+    step = GeneralStep(scene)            # or DecoupledStep(scene)
+    u1, u2, lam = step.solve(active)     # active: bool mask over interior vertices
+
+Both return nodal vectors on all vertices (``u1 = g``, ``u2 = 0``, ``lam = 0``
+on the boundary), ``lam = 0`` on the inactive set and ``lam`` recovered from
+the first equation on the active set, so that with exact solves they produce
+identical iterates.
+
+General path (any mu, also per triangle): with :math:`K = \mathrm{diag}(A_1, A_2)`,
+:math:`A_i = \mu_i A` on interior vertices and :math:`P` copying
+:math:`u_{1,a}` into :math:`u_{2,a}` on the active set,
+
+.. math::  P^T K P\,x = P^T (F - K_{IB} u_B), \qquad
+           \lambda_a = ((A_1 u_1)_a - F_{1,a}) / B_a \ (a \in \mathcal A).
+
+Decoupled path (constant mu): :math:`s = \mu_1 u_1 + \mu_2 u_2` solves one
+Poisson problem, the gap :math:`w = u_1 - u_2` an obstacle problem whose
+Newton-min step is :math:`A_{\mathcal I\mathcal I} w_{\mathcal I} = \dots`, :math:`w = 0` on
+:math:`\mathcal A`, and :math:`\lambda_a = ((A w)_a - F^w_a) / (\kappa B_a)`.
+
+Exact solves use SuperLU (scipy); the factorisation of the interior
+Laplacian is computed once and reused for ``s`` and for every step whose
+active set is empty.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+__all__ = ["DecoupledStep", "GeneralStep", "make_step", "residuals"]
+
+logger = logging.getLogger(__name__)
+
+
+def _factor(mat):
+    """Sparse LU factorisation suited to SPD matrices (symmetric ordering)."""
+    return spla.splu(sp.csc_matrix(mat), permc_spec="MMD_AT_PLUS_A")
+
+
+def residuals(scene, u1, u2, lam):
+    """Algebraic residuals ``R1 = F1 - A1 u1 + B lam``, ``R2 = F2 - A2 u2 - B lam``.
+
+    Zero at boundary vertices (MATH.md section 2).
+
+    Returns
+    -------
+    r1, r2 : ndarray of shape (N,)
+    """
+    f1, f2 = scene.loads
+    b = scene.mesh.lumped_mass
+    r1 = f1 - scene.weighted_stiffness(1) @ u1 + b * lam
+    r2 = f2 - scene.weighted_stiffness(2) @ u2 - b * lam
+    bnd = scene.mesh.boundary_vertex_mask
+    r1[bnd] = 0.0
+    r2[bnd] = 0.0
+    return r1, r2
+
+
+class _Base:
+    def __init__(self, scene):
+        self.scene = scene
+        mesh = scene.mesh
+        self.interior = mesh.interior_vertices
+        self.boundary = mesh.boundary_vertices
+        self.n = mesh.n_vertices
+        self.b_int = mesh.lumped_mass[self.interior]
+        self.g_full = scene.boundary_values
+        self.factorizations = 0
+
+    def _full(self, interior_values, boundary_values=0.0):
+        out = np.empty(self.n)
+        out[self.interior] = interior_values
+        out[self.boundary] = boundary_values if np.isscalar(boundary_values) else (
+            boundary_values[self.boundary])
+        return out
+
+
+class GeneralStep(_Base):
+    """Newton-min linear step on the reduced SPD system (MATH.md section 3.2)."""
+
+    name = "general"
+
+    def __init__(self, scene):
+        super().__init__(scene)
+        ii = self.interior
+        a1 = scene.weighted_stiffness(1)
+        a2 = scene.weighted_stiffness(2)
+        self.a1_ii = a1[ii][:, ii].tocsr()
+        self.a2_ii = a2[ii][:, ii].tocsr()
+        f1, f2 = scene.loads
+        lift = a1 @ self.g_full  # u1 = g on the boundary, u2 = 0
+        self.rhs1 = f1[ii] - lift[ii]
+        self.rhs2 = f2[ii].copy()
+        self.k_ii = sp.block_diag([self.a1_ii, self.a2_ii], format="csr")
+        self._lu_empty = None
+
+    def prolongation(self, active):
+        """The injection P from reduced unknowns (u1 on I, u2 on inactive) to (u1, u2)."""
+        ni = self.interior.size
+        inactive = ~active
+        n_in = int(inactive.sum())
+        cols2 = np.empty(ni, dtype=np.int64)
+        cols2[inactive] = ni + np.arange(n_in)
+        cols2[active] = np.flatnonzero(active)
+        cols = np.concatenate([np.arange(ni), cols2])
+        return sp.csr_matrix(
+            (np.ones(2 * ni), cols, np.arange(2 * ni + 1)), shape=(2 * ni, ni + n_in)
+        )
+
+    def solve(self, active):
+        """Solve the step for the active set ``active`` (bool, interior vertices)."""
+        ni = self.interior.size
+        p = self.prolongation(active)
+        rhs = p.T @ np.concatenate([self.rhs1, self.rhs2])
+        if not active.any() and self._lu_empty is not None:
+            lu = self._lu_empty
+        else:
+            lu = _factor(p.T @ self.k_ii @ p)
+            self.factorizations += 1
+            if not active.any():
+                self._lu_empty = lu
+        x = p @ lu.solve(rhs)
+        u1_i, u2_i = x[:ni], x[ni:]
+        lam_i = np.zeros(ni)
+        # (A1 u1)_a - F1_a = (A1_II u1_I)_a - rhs1_a, since rhs1 = F1_I - A1_IB g_B
+        lam_i[active] = ((self.a1_ii @ u1_i) - self.rhs1)[active] / self.b_int[active]
+        return self._full(u1_i, self.g_full), self._full(u2_i), self._full(lam_i)
+
+
+class DecoupledStep(_Base):
+    """Newton-min linear step on the decoupled sum/gap system (MATH.md section 3.3)."""
+
+    name = "decoupled"
+
+    def __init__(self, scene):
+        if not scene.constant_mu:
+            from .errors import ParameterError
+
+            raise ParameterError(
+                "path='decoupled' needs constant mu1 and mu2; this scene has per-triangle "
+                "values (use path='general' or 'auto')"
+            )
+        super().__init__(scene)
+        ii = self.interior
+        mu1, mu2 = scene.mu1, scene.mu2
+        self.mu1, self.mu2 = mu1, mu2
+        self.kappa = 1.0 / mu1 + 1.0 / mu2
+        a = scene.stiffness
+        self.a_ii = a[ii][:, ii].tocsr()
+        f1, f2 = scene.loads
+        lift = a @ self.g_full  # A restricted to boundary columns applied to g
+        # s = mu1 g on the boundary; w = g on the boundary.
+        self.fw = f1 / mu1 - f2 / mu2
+        self.rhs_w = self.fw[ii] - lift[ii]
+        self._lu_all = _factor(self.a_ii)
+        self.factorizations = 1
+        s_i = self._lu_all.solve((f1 + f2)[ii] - mu1 * lift[ii])
+        self.s = self._full(s_i, mu1 * self.g_full)
+
+    def solve(self, active):
+        """Solve the step for the active set ``active`` (bool, interior vertices)."""
+        inactive = ~active
+        w_i = np.zeros(self.interior.size)
+        if active.any():
+            sub = self.a_ii[inactive][:, inactive]
+            if sub.shape[0]:
+                w_i[inactive] = _factor(sub).solve(self.rhs_w[inactive])
+                self.factorizations += 1
+        else:
+            w_i[:] = self._lu_all.solve(self.rhs_w)
+        lam_i = np.zeros_like(w_i)
+        lam_i[active] = ((self.a_ii @ w_i)[active] - self.rhs_w[active]) / (
+            self.kappa * self.b_int[active]
+        )
+        w = self._full(w_i, self.g_full)
+        m = self.mu1 + self.mu2
+        u1 = (self.s + self.mu2 * w) / m
+        u2 = (self.s - self.mu1 * w) / m
+        u1[self.boundary] = self.g_full[self.boundary]
+        u2[self.boundary] = 0.0
+        return u1, u2, self._full(lam_i)
+
+
+def make_step(scene, path: str = "auto"):
+    """Build the linear-step object for ``path`` in {"auto", "general", "decoupled"}."""
+    from .errors import ParameterError
+
+    if path == "auto":
+        path = "decoupled" if scene.constant_mu else "general"
+    if path == "general":
+        return GeneralStep(scene)
+    if path == "decoupled":
+        return DecoupledStep(scene)
+    raise ParameterError(f"path must be 'auto', 'general' or 'decoupled', got {path!r}")

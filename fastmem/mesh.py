@@ -1,0 +1,569 @@
+"""Triangular meshes: validation, derived topology, generators, refinement, file I/O.
+
+A :class:`Mesh` holds vertex coordinates ``vertices`` (N, 2) float64 and
+triangles ``triangles`` (M, 3) int64, counter-clockwise.  Derived topology
+(edges with a global orientation, triangle-to-edge map, boundary, vertex
+patches in CSR form) is computed once, on first use, with vectorised sorts:
+no Python loop over entities.
+
+Conventions
+-----------
+* Local edge ``i`` of a triangle is the edge opposite its local vertex ``i``,
+  i.e. between local vertices ``(i+1) % 3`` and ``(i+2) % 3``.
+* Global edge ``e`` is oriented from ``edges[e, 0]`` to ``edges[e, 1]`` with
+  ``edges[e, 0] < edges[e, 1]`` (lower to higher global vertex index).  Both
+  triangles sharing an edge see the same orientation, which is what
+  H(div)-conforming (Raviart-Thomas) degrees of freedom need.
+
+Validation policy
+-----------------
+Refused with :class:`~fastmem.errors.MeshError`: wrong shapes, non-finite
+coordinates, indices out of range, triangles repeating a vertex, zero-area
+(degenerate) triangles, duplicate vertices (identical coordinates), unused
+vertices, edges shared by more than two triangles (non-manifold edges),
+boundary vertices where the boundary touches itself (non-manifold vertices),
+and folded/overlapping neighbours (two triangles on the same side of their
+shared edge).  Clockwise triangles are **re-oriented** with a
+:class:`~fastmem.errors.MeshWarning` (pass ``orientation="raise"`` to refuse
+them instead): a consistently clockwise mesh is common in files, and after
+re-orientation a genuinely tangled mesh is still caught by the fold check.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputTypeError, MeshError, MeshWarning, ParameterError
+
+__all__ = ["Mesh"]
+
+logger = logging.getLogger(__name__)
+
+# Relative area below which a triangle counts as degenerate: |K| <= tol * h_K^2.
+_DEGENERATE_TOL = 1e-13
+
+# Local edge i joins local vertices _EDGE_VERTS[i] (edge opposite local vertex i).
+_EDGE_VERTS = np.array([[1, 2], [2, 0], [0, 1]])
+
+
+def _as_vertices(vertices) -> np.ndarray:
+    try:
+        arr = np.asarray(vertices)
+    except Exception as exc:  # ragged lists and the like
+        raise InputTypeError(f"vertices cannot be converted to an array: {exc}") from exc
+    if arr.dtype.kind not in "iuf":
+        raise InputTypeError(
+            f"vertices must be a real numeric array, got dtype {arr.dtype} "
+            f"(kind {arr.dtype.kind!r})"
+        )
+    if arr.ndim != 2 or arr.shape[1] not in (2, 3):
+        raise MeshError(f"vertices must have shape (N, 2) (or (N, 3) with z = 0), got {arr.shape}")
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(arr).all():
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        raise MeshError(
+            f"vertices contain NaN or inf at {bad.size} vertices (first: vertex {bad[0]})"
+        )
+    if arr.shape[1] == 3:
+        scale = max(float(np.abs(arr[:, :2]).max(initial=0.0)), 1.0)
+        zmax = float(np.abs(arr[:, 2]).max(initial=0.0))
+        if zmax > 1e-12 * scale:
+            raise MeshError(f"vertices are not planar: max |z| = {zmax:g} (2D meshes only)")
+        arr = np.ascontiguousarray(arr[:, :2])
+    return arr
+
+
+def _as_triangles(triangles, n_vertices: int) -> np.ndarray:
+    try:
+        arr = np.asarray(triangles)
+    except Exception as exc:
+        raise InputTypeError(f"triangles cannot be converted to an array: {exc}") from exc
+    if arr.dtype.kind not in "iu":
+        raise InputTypeError(f"triangles must have an integer dtype, got {arr.dtype}")
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise MeshError(f"triangles must have shape (M, 3), got {arr.shape}")
+    if arr.shape[0] == 0:
+        raise MeshError("triangles is empty: a mesh needs at least one triangle")
+    lo, hi = arr.min(), arr.max()
+    if lo < 0 or hi >= n_vertices:
+        bad = int(lo) if lo < 0 else int(hi)
+        raise MeshError(
+            f"triangles reference vertex index {bad}, outside [0, {n_vertices - 1}] "
+            f"({n_vertices} vertices)"
+        )
+    return np.ascontiguousarray(arr, dtype=np.int64)
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False
+    return a
+
+
+class Mesh:
+    """A conforming triangular mesh of a polygon.
+
+    Parameters
+    ----------
+    vertices : array_like of shape (N, 2)
+        Vertex coordinates (converted once to C-contiguous float64).  Shape
+        (N, 3) is accepted when every z coordinate is zero.
+    triangles : array_like of int, shape (M, 3)
+        Vertex indices of each triangle (any integer dtype, converted to int64).
+    orientation : {"fix", "raise"}
+        What to do with clockwise triangles: re-orient them with a
+        :class:`~fastmem.errors.MeshWarning` (default) or raise MeshError.
+    validate : bool
+        Run the full validation (duplicate vertices, non-manifold and folded
+        edges) immediately.  Built-in generators pass False: their output is
+        valid by construction.  The cheap checks (shapes, ranges, areas,
+        orientation, unused vertices) always run.
+
+    Examples
+    --------
+    >>> import fastmem as fm
+    >>> mesh = fm.Mesh.square(4)
+    >>> mesh.n_vertices, mesh.n_triangles, mesh.n_edges
+    (25, 32, 56)
+    """
+
+    def __init__(self, vertices, triangles, *, orientation: str = "fix", validate: bool = True):
+        if orientation not in ("fix", "raise"):
+            raise ParameterError(f"orientation must be 'fix' or 'raise', got {orientation!r}")
+        v = _as_vertices(vertices)
+        t = _as_triangles(triangles, v.shape[0])
+        self._cache: dict = {}
+        self.parent: Mesh | None = None
+
+        # Repeated vertex inside one triangle.
+        rep = (t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])
+        if rep.any():
+            k = int(np.flatnonzero(rep)[0])
+            raise MeshError(
+                f"degenerate triangles: {int(rep.sum())} triangles repeat a vertex "
+                f"(first: triangle {k} = {t[k].tolist()})"
+            )
+        area2 = _signed_area2(v, t)
+        h2 = _max_edge_sq(v, t)
+        degenerate = np.abs(area2) <= 2.0 * _DEGENERATE_TOL * h2
+        if degenerate.any():
+            k = int(np.flatnonzero(degenerate)[0])
+            raise MeshError(
+                f"degenerate triangles: {int(degenerate.sum())} triangles have zero area "
+                f"(first: triangle {k} = {t[k].tolist()}, area {0.5 * area2[k]:g})"
+            )
+        cw = area2 < 0
+        if cw.any():
+            k = int(np.flatnonzero(cw)[0])
+            msg = (
+                f"{int(cw.sum())} of {t.shape[0]} triangles are clockwise "
+                f"(first: triangle {k} = {t[k].tolist()})"
+            )
+            if orientation == "raise":
+                raise MeshError(f"inverted triangles: {msg}")
+            warnings.warn(f"{msg}; re-oriented to counter-clockwise", MeshWarning, stacklevel=2)
+            t = t.copy()
+            t[cw, 1], t[cw, 2] = t[cw, 2].copy(), t[cw, 1].copy()
+            area2 = np.abs(area2)
+        counts = np.bincount(t.ravel(), minlength=v.shape[0])
+        if (counts == 0).any():
+            unused = np.flatnonzero(counts == 0)
+            raise MeshError(
+                f"unused vertices: {unused.size} vertices belong to no triangle "
+                f"(first: vertex {unused[0]}); remove them or use Mesh.read, which compacts"
+            )
+        self.vertices = _readonly(v)
+        self.triangles = _readonly(t)
+        self._cache["areas"] = _readonly(0.5 * area2)
+        self._cache["diameters"] = _readonly(np.sqrt(h2))
+        self._cache["vertex_degree"] = counts
+        if validate:
+            self._check_duplicate_vertices()
+            self._topology()  # runs the edge checks
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_vertices(self) -> int:
+        """Number of vertices N."""
+        return self.vertices.shape[0]
+
+    @property
+    def n_triangles(self) -> int:
+        """Number of triangles M."""
+        return self.triangles.shape[0]
+
+    @property
+    def n_edges(self) -> int:
+        """Number of edges E."""
+        return self.edges.shape[0]
+
+    def __repr__(self) -> str:
+        return f"Mesh(n_vertices={self.n_vertices}, n_triangles={self.n_triangles})"
+
+    # --------------------------------------------------------------- geometry
+    @property
+    def areas(self) -> np.ndarray:
+        """Triangle areas |K|, shape (M,)."""
+        return self._cache["areas"]
+
+    @property
+    def diameters(self) -> np.ndarray:
+        """Triangle diameters h_K (longest edge), shape (M,)."""
+        return self._cache["diameters"]
+
+    @property
+    def h(self) -> float:
+        """Mesh size max_K h_K."""
+        return float(self.diameters.max())
+
+    @property
+    def bounding_box(self) -> tuple[float, float, float, float]:
+        """``(xmin, xmax, ymin, ymax)`` of the vertices."""
+        lo = self.vertices.min(axis=0)
+        hi = self.vertices.max(axis=0)
+        return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+
+    @property
+    def lumped_mass(self) -> np.ndarray:
+        """Lumped P1 mass ``B_a = |omega_a| / 3``, shape (N,)."""
+        if "lumped_mass" not in self._cache:
+            w = np.repeat(self.areas / 3.0, 3)
+            b = np.bincount(self.triangles.ravel(), weights=w, minlength=self.n_vertices)
+            self._cache["lumped_mass"] = _readonly(b)
+        return self._cache["lumped_mass"]
+
+    @property
+    def gradients(self) -> np.ndarray:
+        """Gradients of the three P1 hat functions on each triangle, shape (M, 3, 2)."""
+        if "gradients" not in self._cache:
+            self._cache["gradients"] = _readonly(_p1_gradients(self.vertices, self.triangles))
+        return self._cache["gradients"]
+
+    # --------------------------------------------------------------- topology
+    def _topology(self) -> dict:
+        if "edges" in self._cache:
+            return self._cache
+        t = self.triangles
+        n, m = self.n_vertices, self.n_triangles
+        half = t[:, _EDGE_VERTS]  # (M, 3, 2): local edge i from vertex i+1 to i+2
+        a = half[..., 0].ravel()
+        b = half[..., 1].ravel()
+        lo = np.minimum(a, b)
+        hi = np.maximum(a, b)
+        key = lo * np.int64(n) + hi
+        perm = np.argsort(key, kind="stable")
+        skey = key[perm]
+        first = np.empty(skey.size, dtype=bool)
+        first[0] = True
+        np.not_equal(skey[1:], skey[:-1], out=first[1:])
+        starts = np.flatnonzero(first)
+        n_edges = starts.size
+        counts = np.diff(np.append(starts, skey.size))
+        if (counts > 2).any():
+            e = int(np.flatnonzero(counts > 2)[0])
+            k = skey[starts[e]]
+            raise MeshError(
+                f"non-manifold edges: {int((counts > 2).sum())} edges are shared by more than "
+                f"two triangles (first: edge ({k // n}, {k % n}) in {counts[e]} triangles)"
+            )
+        edge_id_sorted = np.cumsum(first) - 1
+        tri_edges = np.empty(3 * m, dtype=np.int64)
+        tri_edges[perm] = edge_id_sorted
+        edges = np.stack([skey[starts] // n, skey[starts] % n], axis=1)
+        # Triangles on each side; the fold check: the two half-edges of an
+        # interior edge must run in opposite directions.
+        et = np.full((n_edges, 2), -1, dtype=np.int64)
+        et[:, 0] = perm[starts] // 3
+        two = counts == 2
+        et[two, 1] = perm[starts[two] + 1] // 3
+        forward = (a < b)[perm]
+        fwd_count = np.add.reduceat(forward.astype(np.int64), starts)
+        folded = two & (fwd_count != 1)
+        if folded.any():
+            e = int(np.flatnonzero(folded)[0])
+            raise MeshError(
+                f"folded or overlapping triangles: {int(folded.sum())} interior edges have both "
+                f"neighbours on the same side (first: edge {edges[e].tolist()} between triangles "
+                f"{et[e].tolist()}); the mesh is tangled or has duplicate triangles"
+            )
+        boundary_edges = np.flatnonzero(~two)
+        bcount = np.bincount(edges[boundary_edges].ravel(), minlength=n)
+        if ((bcount != 0) & (bcount != 2)).any():
+            vtx = int(np.flatnonzero((bcount != 0) & (bcount != 2))[0])
+            raise MeshError(
+                f"non-manifold vertex {vtx}: it lies on {bcount[vtx]} boundary edges "
+                "(the boundary touches itself there; expected 2)"
+            )
+        self._cache.update(
+            edges=_readonly(edges),
+            triangle_edges=_readonly(tri_edges.reshape(m, 3)),
+            edge_triangles=_readonly(et),
+            boundary_edges=_readonly(boundary_edges),
+            boundary_vertex_mask=_readonly(bcount > 0),
+        )
+        return self._cache
+
+    @property
+    def edges(self) -> np.ndarray:
+        """Edges as vertex pairs (E, 2) with ``edges[:, 0] < edges[:, 1]`` (global orientation)."""
+        return self._topology()["edges"]
+
+    @property
+    def triangle_edges(self) -> np.ndarray:
+        """Global edge index of each local edge (M, 3); local edge i is opposite local vertex i."""
+        return self._topology()["triangle_edges"]
+
+    @property
+    def edge_triangles(self) -> np.ndarray:
+        """The one or two triangles of each edge (E, 2); -1 marks a missing neighbour."""
+        return self._topology()["edge_triangles"]
+
+    @property
+    def boundary_edges(self) -> np.ndarray:
+        """Indices of the boundary edges (edges with one triangle)."""
+        return self._topology()["boundary_edges"]
+
+    @property
+    def boundary_vertex_mask(self) -> np.ndarray:
+        """Boolean mask of boundary vertices, shape (N,)."""
+        return self._topology()["boundary_vertex_mask"]
+
+    @property
+    def boundary_vertices(self) -> np.ndarray:
+        """Indices of the boundary vertices (sorted)."""
+        if "boundary_vertices" not in self._cache:
+            self._cache["boundary_vertices"] = _readonly(np.flatnonzero(self.boundary_vertex_mask))
+        return self._cache["boundary_vertices"]
+
+    @property
+    def interior_vertices(self) -> np.ndarray:
+        """Indices of the interior vertices (sorted)."""
+        if "interior_vertices" not in self._cache:
+            self._cache["interior_vertices"] = _readonly(
+                np.flatnonzero(~self.boundary_vertex_mask)
+            )
+        return self._cache["interior_vertices"]
+
+    def _patches(self) -> dict:
+        if "patch_ptr" not in self._cache:
+            flat = self.triangles.ravel()
+            order = np.argsort(flat, kind="stable")
+            ptr = np.zeros(self.n_vertices + 1, dtype=np.int64)
+            np.cumsum(self._cache["vertex_degree"], out=ptr[1:])
+            self._cache.update(
+                patch_ptr=_readonly(ptr),
+                patch_triangles=_readonly(order // 3),
+                patch_local=_readonly(order % 3),
+            )
+        return self._cache
+
+    @property
+    def patch_ptr(self) -> np.ndarray:
+        """CSR pointer of the vertex patches, shape (N + 1,)."""
+        return self._patches()["patch_ptr"]
+
+    @property
+    def patch_triangles(self) -> np.ndarray:
+        """Triangles of patch a: ``patch_triangles[patch_ptr[a]:patch_ptr[a+1]]`` (sorted)."""
+        return self._patches()["patch_triangles"]
+
+    @property
+    def patch_local(self) -> np.ndarray:
+        """Local index (0, 1, 2) of the patch vertex in each patch triangle (same layout)."""
+        return self._patches()["patch_local"]
+
+    def _check_duplicate_vertices(self) -> None:
+        v = self.vertices
+        order = np.lexsort((v[:, 1], v[:, 0]))
+        sv = v[order]
+        same = (sv[1:] == sv[:-1]).all(axis=1)
+        if same.any():
+            i = int(np.flatnonzero(same)[0])
+            a, b = sorted((int(order[i]), int(order[i + 1])))
+            raise MeshError(
+                f"duplicate vertices: {int(same.sum())} vertices repeat the coordinates of "
+                f"another (first: vertices {a} and {b} at {v[a].tolist()})"
+            )
+
+    # ------------------------------------------------------------- generators
+    @classmethod
+    def rectangle(
+        cls,
+        nx: int,
+        ny: int | None = None,
+        bounds=(0.0, 1.0, 0.0, 1.0),
+        diagonal: str = "right",
+    ) -> Mesh:
+        """Structured mesh of a rectangle with ``nx`` x ``ny`` cells, two triangles per cell.
+
+        Parameters
+        ----------
+        nx, ny : int
+            Cells in x and y (``ny`` defaults to ``nx``).
+        bounds : tuple of float
+            ``(xmin, xmax, ymin, ymax)``.
+        diagonal : {"right", "left", "symmetric"}
+            Cell diagonals: "right" from lower-left to upper-right, "left" from
+            lower-right to upper-left, "symmetric" pointing towards the centre
+            in every quadrant (the mesh then has the rectangle's symmetries
+            when nx and ny are even).
+        """
+        nx = _check_cells("nx", nx)
+        ny = nx if ny is None else _check_cells("ny", ny)
+        x0, x1, y0, y1 = (float(b) for b in bounds)
+        if not (np.isfinite([x0, x1, y0, y1]).all() and x1 > x0 and y1 > y0):
+            raise ParameterError(f"bounds must be finite with xmin < xmax, ymin < ymax: {bounds}")
+        if diagonal not in ("right", "left", "symmetric"):
+            raise ParameterError(
+                f"diagonal must be 'right', 'left' or 'symmetric', got {diagonal!r}"
+            )
+        xs = np.linspace(x0, x1, nx + 1)
+        ys = np.linspace(y0, y1, ny + 1)
+        if diagonal == "symmetric":  # exact symmetry of the coordinates too
+            xs = 0.5 * (xs - xs[::-1]) + 0.5 * (x0 + x1)
+            ys = 0.5 * (ys - ys[::-1]) + 0.5 * (y0 + y1)
+        X, Y = np.meshgrid(xs, ys)
+        vertices = np.stack([X.ravel(), Y.ravel()], axis=1)
+        i, j = np.meshgrid(np.arange(nx), np.arange(ny))
+        i, j = i.ravel(), j.ravel()
+        a = j * (nx + 1) + i
+        b, c, d = a + 1, a + nx + 2, a + nx + 1
+        if diagonal == "right":
+            slash = np.ones(a.size, dtype=bool)
+        elif diagonal == "left":
+            slash = np.zeros(a.size, dtype=bool)
+        else:
+            xc = (2 * i + 1 - nx) * 1.0
+            yc = (2 * j + 1 - ny) * 1.0
+            slash = xc * yc >= 0
+        t_slash = np.stack([np.stack([a, b, c], 1), np.stack([a, c, d], 1)], axis=1)
+        t_back = np.stack([np.stack([a, b, d], 1), np.stack([b, c, d], 1)], axis=1)
+        tris = np.where(slash[:, None, None], t_slash, t_back).reshape(-1, 3)
+        return cls(vertices, tris, validate=False)
+
+    @classmethod
+    def square(cls, n: int = 64, diagonal: str = "symmetric") -> Mesh:
+        """Structured mesh of the square (-1, 1)^2 with n x n cells (2 n^2 triangles).
+
+        With the default ``diagonal="symmetric"`` and even ``n`` the mesh is
+        invariant under the eight symmetries of the square.
+        """
+        return cls.rectangle(n, n, (-1.0, 1.0, -1.0, 1.0), diagonal=diagonal)
+
+    @classmethod
+    def lshape(cls, n: int = 64) -> Mesh:
+        """L-shaped domain (-1, 1)^2 minus [0, 1) x (-1, 0], from an n x n grid (n even).
+
+        The reentrant corner is at the origin.
+        """
+        n = _check_cells("n", n)
+        if n % 2:
+            raise ParameterError(f"n must be even for the L-shaped domain, got {n}")
+        sq = cls.square(n)
+        cen = sq.vertices[sq.triangles].mean(axis=1)
+        keep = ~((cen[:, 0] > 0) & (cen[:, 1] < 0))
+        return cls._compact(sq.vertices, sq.triangles[keep], validate=False)
+
+    @classmethod
+    def _compact(cls, vertices, triangles, **kwargs) -> Mesh:
+        used = np.zeros(len(vertices), dtype=bool)
+        used[np.asarray(triangles).ravel()] = True
+        new_index = np.cumsum(used) - 1
+        return cls(np.asarray(vertices)[used], new_index[triangles], **kwargs)
+
+    def refine(self) -> Mesh:
+        """Uniform (red) refinement: every triangle split into four by its edge midpoints.
+
+        Vertex ``N + e`` of the refined mesh is the midpoint of edge ``e``; the
+        returned mesh keeps a reference to this one in ``parent``.
+        """
+        v, t, te = self.vertices, self.triangles, self.triangle_edges
+        n = self.n_vertices
+        mid = 0.5 * (v[self.edges[:, 0]] + v[self.edges[:, 1]])
+        m0, m1, m2 = (te[:, k] + n for k in range(3))
+        v0, v1, v2 = t[:, 0], t[:, 1], t[:, 2]
+        children = np.stack(
+            [
+                np.stack([v0, m2, m1], 1),
+                np.stack([m2, v1, m0], 1),
+                np.stack([m1, m0, v2], 1),
+                np.stack([m0, m1, m2], 1),
+            ],
+            axis=1,
+        ).reshape(-1, 3)
+        fine = type(self)(np.vstack([v, mid]), children, validate=False)
+        fine.parent = self
+        return fine
+
+    # -------------------------------------------------------------------- I/O
+    @classmethod
+    def read(cls, path, **kwargs) -> Mesh:
+        """Read a 2D triangle mesh with meshio (gmsh .msh, .vtu, .xdmf, ...).
+
+        All linear triangle blocks are merged; 3D coordinates are accepted when
+        z = 0.  Vertices that belong to no triangle (e.g. geometry points of a
+        gmsh file) are dropped.  Keyword arguments go to :class:`Mesh`.
+        """
+        import meshio
+
+        path = Path(path)
+        if not path.exists():
+            raise MeshError(f"mesh file not found: {path}")
+        try:
+            m = meshio.read(path)
+        except Exception as exc:  # meshio raises many types
+            raise MeshError(f"cannot read mesh file {path}: {exc}") from exc
+        blocks = [c.data for c in m.cells if c.type == "triangle"]
+        if not blocks:
+            kinds = sorted({c.type for c in m.cells})
+            raise MeshError(
+                f"mesh file {path} has no linear triangle cells (cell types: {kinds}); "
+                "fastmem needs a 2D P1 triangle mesh"
+            )
+        tris = np.concatenate(blocks).astype(np.int64)
+        return cls._compact(_as_vertices(m.points), tris, **kwargs)
+
+    def write(self, path, file_format: str | None = None) -> None:
+        """Write the mesh with meshio (format from the suffix unless ``file_format`` is given)."""
+        import meshio
+
+        meshio.write_points_cells(
+            str(path), self.vertices, [("triangle", self.triangles)], file_format=file_format
+        )
+
+
+def _check_cells(name, value) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ParameterError(f"{name} must be a positive integer, got {value!r}")
+    if value < 1:
+        raise ParameterError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _signed_area2(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    p0, p1, p2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p2[:, 0] - p0[:, 0]) * (
+        p1[:, 1] - p0[:, 1]
+    )
+
+
+def _max_edge_sq(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    p = v[t]  # (M, 3, 2)
+    d = p[:, _EDGE_VERTS[:, 1]] - p[:, _EDGE_VERTS[:, 0]]
+    return (d**2).sum(axis=2).max(axis=1)
+
+
+def _p1_gradients(v: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Gradients of the barycentric coordinates: grad(phi_i) = rot90(edge opposite i) / (2|K|)."""
+    p = v[t]
+    d = p[:, _EDGE_VERTS[:, 1]] - p[:, _EDGE_VERTS[:, 0]]  # edge i vector, from i+1 to i+2
+    area2 = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (
+        p[:, 1, 1] - p[:, 0, 1]
+    )
+    g = np.empty_like(d)
+    g[..., 0] = -d[..., 1]
+    g[..., 1] = d[..., 0]
+    return g / area2[:, None, None]
