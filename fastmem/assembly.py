@@ -139,7 +139,9 @@ def evaluate_callable(f, x, y, name="f"):
                 "(evaluate elementwise on the arrays x and y)"
             ) from exc
     if not np.isfinite(val).all():
-        raise DataError(f"{name}(x, y) returned NaN or inf at {int((~np.isfinite(val)).sum())} points")
+        raise DataError(
+            f"{name}(x, y) returned NaN or inf at {int((~np.isfinite(val)).sum())} points"
+        )
     return val
 
 

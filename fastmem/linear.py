@@ -78,8 +78,9 @@ class _Base:
     def _full(self, interior_values, boundary_values=0.0):
         out = np.empty(self.n)
         out[self.interior] = interior_values
-        out[self.boundary] = boundary_values if np.isscalar(boundary_values) else (
-            boundary_values[self.boundary])
+        out[self.boundary] = (
+            boundary_values if np.isscalar(boundary_values) else (boundary_values[self.boundary])
+        )
         return out
 
 
@@ -103,7 +104,7 @@ class GeneralStep(_Base):
         self._lu_empty = None
 
     def prolongation(self, active):
-        """The injection P from reduced unknowns (u1 on I, u2 on inactive) to (u1, u2)."""
+        """Build the injection P from reduced unknowns (u1 on I, u2 on inactive) to (u1, u2)."""
         ni = self.interior.size
         inactive = ~active
         n_in = int(inactive.sum())

@@ -342,9 +342,7 @@ class Mesh:
     def interior_vertices(self) -> np.ndarray:
         """Indices of the interior vertices (sorted)."""
         if "interior_vertices" not in self._cache:
-            self._cache["interior_vertices"] = _readonly(
-                np.flatnonzero(~self.boundary_vertex_mask)
-            )
+            self._cache["interior_vertices"] = _readonly(np.flatnonzero(~self.boundary_vertex_mask))
         return self._cache["interior_vertices"]
 
     def _patches(self) -> dict:

@@ -23,8 +23,10 @@ logger = logging.getLogger(__name__)
 
 
 def _is_real_scalar(x) -> bool:
-    return isinstance(x, numbers.Real) and not isinstance(x, bool) or (
-        isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf"
+    return (
+        isinstance(x, numbers.Real)
+        and not isinstance(x, bool)
+        or (isinstance(x, np.ndarray) and x.ndim == 0 and x.dtype.kind in "iuf")
     )
 
 
@@ -88,7 +90,9 @@ def _check_load(value, name, n_vertices):
                 f"got {arr.shape}"
             )
         if not np.isfinite(arr).all():
-            raise DataError(f"{name} contains NaN or inf at {int((~np.isfinite(arr)).sum())} vertices")
+            raise DataError(
+                f"{name} contains NaN or inf at {int((~np.isfinite(arr)).sum())} vertices"
+            )
         arr.flags.writeable = False
         return arr
     raise InputTypeError(
@@ -264,8 +268,11 @@ class Scene:
         """JSON-serialisable description of the scene."""
 
         def mu_desc(mu):
-            return mu if isinstance(mu, float) else {"kind": "per-triangle", "min": float(mu.min()),
-                                                     "max": float(mu.max())}
+            return (
+                mu
+                if isinstance(mu, float)
+                else {"kind": "per-triangle", "min": float(mu.min()), "max": float(mu.max())}
+            )
 
         return {
             "n_vertices": self.mesh.n_vertices,
@@ -281,8 +288,5 @@ class Scene:
 
     def __repr__(self) -> str:
         p = self.parameters()
-        return (
-            f"Scene({self.mesh!r}, mu=({p['mu1']}, {p['mu2']}), "
-            f"f=({p['f1'].get('value', p['f1']['kind'])}, {p['f2'].get('value', p['f2']['kind'])}), "
-            f"g={p['g'].get('value', p['g']['kind'])})"
-        )
+        f1, f2, g = (p[k].get("value", p[k]["kind"]) for k in ("f1", "f2", "g"))
+        return f"Scene({self.mesh!r}, mu=({p['mu1']}, {p['mu2']}), f=({f1}, {f2}), g={g})"

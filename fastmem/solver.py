@@ -2,7 +2,10 @@ r"""Newton-min (semismooth Newton, primal-dual active set) for the two-membrane 
 
 At step k the active (contact) set is read off the previous iterate,
 
-.. math:: \mathcal A^k = \{a \text{ interior} : \lambda^{k-1}_a > c\,(u^{k-1}_{1,a} - u^{k-1}_{2,a})\},
+.. math::
+
+    \mathcal A^k = \{a \text{ interior} :
+        \lambda^{k-1}_a > c\,(u^{k-1}_{1,a} - u^{k-1}_{2,a})\},
 
 and the linear step (:mod:`fastmem.linear`) imposes ``gap = 0`` on the active
 set and ``lambda = 0`` on the inactive set.  With exact solves the iteration
@@ -60,9 +63,7 @@ def _check_initial(initial, mesh):
         if a.dtype.kind not in "iuf":
             raise InputTypeError(f"initial {name} must be real numbers, got dtype {a.dtype}")
         if a.shape != (mesh.n_vertices,):
-            raise DataError(
-                f"initial {name} must have shape ({mesh.n_vertices},), got {a.shape}"
-            )
+            raise DataError(f"initial {name} must have shape ({mesh.n_vertices},), got {a.shape}")
         a = np.asarray(a, dtype=np.float64)
         if not np.isfinite(a).all():
             raise DataError(f"initial {name} contains NaN or inf")
@@ -114,8 +115,10 @@ def solve(
         raise InputTypeError(f"scene must be a fastmem.Scene, got {type(scene).__name__}")
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
-    if isinstance(max_newton, bool) or not isinstance(max_newton, (int, np.integer)) or (
-        max_newton < 1
+    if (
+        isinstance(max_newton, bool)
+        or not isinstance(max_newton, (int, np.integer))
+        or (max_newton < 1)
     ):
         raise ParameterError(f"max_newton must be a positive integer, got {max_newton!r}")
     mesh = scene.mesh
@@ -166,7 +169,11 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
             rows[name].append(row[name])
         logger.info(
             "newton %d: |A|=%d changed=%d |min(gap,lam)|=%.3e |R|=%.3e",
-            k, row["n_active"], n_changed, row["comp_norm"], row["res_norm"],
+            k,
+            row["n_active"],
+            n_changed,
+            row["comp_norm"],
+            row["res_norm"],
         )
         if monitor is not None:
             monitor(row)
@@ -188,11 +195,14 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
     if not converged:
         logger.warning(
             "Newton-min did not converge in %d steps (active set still changing by %d vertices)",
-            max_newton, n_changed,
+            max_newton,
+            n_changed,
         )
     history = {
-        name: np.asarray(rows[name], dtype=np.float64 if name in ("comp_norm", "res_norm",
-                                                                  "seconds") else np.int64)
+        name: np.asarray(
+            rows[name],
+            dtype=np.float64 if name in ("comp_norm", "res_norm", "seconds") else np.int64,
+        )
         for name in HISTORY_COLUMNS
     }
     params = scene.parameters()

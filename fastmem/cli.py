@@ -1,0 +1,219 @@
+"""Command line: ``fastmem run``, ``fastmem info FILE.h5``, ``fastmem export FILE.h5 OUT``.
+
+``fastmem run`` with no option solves the default scene (MATH.md section 8):
+the square (-1, 1)^2, mu1 = mu2 = 1, f1 = -1, f2 = 1, g = 0.1, on a structured
+mesh, prints one monitor line per Newton step and a summary, and writes an
+HDF5 archive.  Errors in the input are reported in one line on stderr (exit
+status 2), without a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_N = 128
+DEFAULT_OUTPUT = "fastmem-result.h5"
+
+
+def _out(text: str = "") -> None:
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    p = argparse.ArgumentParser(
+        prog="fastmem",
+        description="Two-membrane contact problem: P1 finite elements, Newton-min.",
+    )
+    p.add_argument("--version", action="version", version=f"fastmem {__version__}")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+
+    r = sub.add_parser("run", help="solve a scene (default: MATH.md section 8) and save it")
+    mesh = r.add_mutually_exclusive_group()
+    mesh.add_argument(
+        "--n",
+        type=int,
+        default=None,
+        help=f"cells per side of the structured square mesh (default {DEFAULT_N})",
+    )
+    mesh.add_argument(
+        "--mesh", type=Path, default=None, help="mesh file readable by meshio (e.g. gmsh .msh)"
+    )
+    r.add_argument(
+        "--refine", type=int, default=0, help="uniform refinements applied to the mesh (default 0)"
+    )
+    r.add_argument("--mu1", type=float, default=1.0, help="tension of membrane 1 (default 1)")
+    r.add_argument("--mu2", type=float, default=1.0, help="tension of membrane 2 (default 1)")
+    r.add_argument("--f1", type=float, default=-1.0, help="constant load f1 (default -1)")
+    r.add_argument("--f2", type=float, default=1.0, help="constant load f2 (default 1)")
+    r.add_argument("--g", type=float, default=0.1, help="boundary value of u1 (default 0.1)")
+    r.add_argument("--method", default="exact", help="solver method (default exact)")
+    r.add_argument(
+        "--path",
+        default="auto",
+        choices=("auto", "general", "decoupled"),
+        help="linear-step formulation (default auto)",
+    )
+    r.add_argument("--max-newton", type=int, default=1000, help="Newton-min step limit")
+    r.add_argument("--threads", type=int, default=None, help="Numba threads (default: all)")
+    r.add_argument(
+        "--blas-threads", type=int, default=None, help="BLAS threads in solver phases (default 1)"
+    )
+    r.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=Path(DEFAULT_OUTPUT),
+        help=f"archive to write (default {DEFAULT_OUTPUT})",
+    )
+    r.add_argument("--no-save", action="store_true", help="do not write an archive")
+    r.add_argument("-q", "--quiet", action="store_true", help="no per-step monitor")
+
+    i = sub.add_parser("info", help="summarise a result archive")
+    i.add_argument("file", type=Path)
+    i.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+    e = sub.add_parser("export", help="export a result archive to VTU or XDMF")
+    e.add_argument("file", type=Path)
+    e.add_argument("out", type=Path)
+    return p
+
+
+class _Monitor:
+    header = f"{'k':>4} {'|A|':>9} {'changed':>9} {'|min(gap,lam)|':>15} {'|R|':>11} {'sec':>8}"
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        if enabled:
+            _out(self.header)
+            _out("-" * len(self.header))
+
+    def __call__(self, row: dict) -> None:
+        if self.enabled:
+            _out(
+                f"{row['k']:>4d} {row['n_active']:>9d} {row['n_changed']:>9d} "
+                f"{row['comp_norm']:>15.3e} {row['res_norm']:>11.3e} {row['seconds']:>8.3f}"
+            )
+
+
+def _cmd_run(args) -> int:
+    from .config import set_threads
+    from .mesh import Mesh
+    from .scene import Scene
+    from .solver import solve
+
+    if args.threads is not None or args.blas_threads is not None:
+        set_threads(numba=args.threads, blas=args.blas_threads)
+    t0 = time.perf_counter()
+    if args.mesh is not None:
+        mesh = Mesh.read(args.mesh)
+        source = str(args.mesh)
+    else:
+        n = DEFAULT_N if args.n is None else args.n
+        mesh = Mesh.square(n)
+        source = f"square n={n}"
+    if args.refine < 0:
+        from .errors import ParameterError
+
+        raise ParameterError(f"--refine must be >= 0, got {args.refine}")
+    for _ in range(args.refine):
+        mesh = mesh.refine()
+    scene = Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=args.g)
+    t_mesh = time.perf_counter() - t0
+    _out(f"fastmem run: {source}, {mesh.n_vertices} vertices, {mesh.n_triangles} triangles")
+    _out(
+        f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), g = {args.g:g}, "
+        f"method = {args.method}"
+    )
+    result = solve(
+        scene,
+        method=args.method,
+        path=args.path,
+        max_newton=args.max_newton,
+        monitor=_Monitor(not args.quiet),
+    )
+    result.timings["mesh"] = t_mesh
+    status = "converged" if result.converged else "NOT CONVERGED (step limit reached)"
+    _out()
+    _out(f"  status            {status}")
+    _out(f"  linear path       {result.path}")
+    _out(f"  Newton steps      {result.n_newton}")
+    _out(
+        f"  contact fraction  {result.contact_fraction:.4f}  "
+        f"({int(result.active.sum())} contact vertices)"
+    )
+    _out(f"  final |R|         {result.history['res_norm'][-1]:.3e}")
+    _out(f"  seconds           {result.timings['total']:.3f} solve, {t_mesh:.3f} mesh")
+    if not args.no_save:
+        result.save(args.output)
+        _out(f"  archive           {args.output}")
+    return 0 if result.converged else 1
+
+
+def _cmd_info(args) -> int:
+    from .archive import info
+
+    summary = info(args.file)
+    if args.json:
+        _out(json.dumps(summary, indent=2, default=str))
+        return 0
+    _out(
+        f"{args.file}: fastmem result archive (format {summary['format_version']}, "
+        f"written by fastmem {summary['fastmem_version']} on {summary['created']})"
+    )
+    _out(
+        f"  mesh              {summary['n_vertices']} vertices, {summary['n_triangles']} triangles"
+    )
+    _out(f"  method / path     {summary['method']} / {summary['path']}")
+    _out(f"  converged         {summary['converged']} after {summary['n_newton']} Newton steps")
+    params = summary["parameters"]
+    for key in ("mu1", "mu2", "f1", "f2", "g"):
+        if key in params:
+            _out(f"  {key:<17} {params[key]}")
+    if summary["has_estimate"]:
+        for k, v in summary["estimator_totals"].items():
+            _out(f"  {k:<17} {v:.4e}")
+    _out(
+        f"  history           {summary['n_history_rows']} rows: "
+        f"{', '.join(summary['history_columns'])}"
+    )
+    for k, v in summary["timings"].items():
+        _out(f"  time {k:<12} {v:.3f} s")
+    return 0
+
+
+def _cmd_export(args) -> int:
+    from .archive import export, load
+
+    export(load(args.file), args.out)
+    _out(f"wrote {args.out}")
+    return 0
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``fastmem`` console script; returns the exit status."""
+    from .errors import FastmemError
+
+    args = _build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="fastmem: %(levelname)s: %(message)s")
+    try:
+        return {"run": _cmd_run, "info": _cmd_info, "export": _cmd_export}[args.command](args)
+    except FastmemError as exc:
+        sys.stderr.write(f"fastmem: error: {exc}\n")
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

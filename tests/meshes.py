@@ -1,0 +1,15 @@
+"""Test meshes shared by several test modules."""
+
+import numpy as np
+
+import fastmem as fm
+
+
+def perturbed_square(n, amount, seed=20261121):
+    """Structured square mesh with interior vertices moved randomly (still valid)."""
+    base = fm.Mesh.square(n, diagonal="right")
+    rng = np.random.default_rng(seed)
+    v = base.vertices.copy()
+    interior = base.interior_vertices
+    v[interior] += rng.uniform(-amount, amount, size=(interior.size, 2)) * (2.0 / n)
+    return fm.Mesh(v, base.triangles)
