@@ -3,9 +3,11 @@ r"""Assembly of P1 matrices and load vectors.
 All P1 matrices of a mesh share one CSR sparsity pattern, the vertex graph
 (diagonal plus one entry per edge neighbour, columns sorted), built once per
 mesh together with a COO -> CSR position map (:mod:`fastmem.kernels.sparsity`)
-and cached on the mesh.  An assembly is then two parallel Numba passes: local
-matrices per triangle (COO values), and a gather into the CSR data array
-through the map (:mod:`fastmem.kernels.assembly`).  scipy's ``tocsr()`` (a
+and cached on the mesh.  An assembly is then one parallel Numba pass over rows
+that recomputes each patch triangle's local row and adds it through the map
+(:mod:`fastmem.kernels.assembly`, ``stiffness_csr``); the two-pass COO route
+(local matrices per triangle, then :func:`gather_to_csr`) gives the same
+matrix bit for bit and serves general local matrices.  scipy's ``tocsr()`` (a
 sort and a duplicate sum) is never called.
 
 .. math::
@@ -47,6 +49,7 @@ __all__ = [
     "assemble_stiffness",
     "csr_structure",
     "evaluate_callable",
+    "gather_to_csr",
 ]
 
 logger = logging.getLogger(__name__)
@@ -88,11 +91,17 @@ def _coef_array(mesh, coef, name):
     return c
 
 
-def _to_csr(mesh, vals):
-    indptr, indices, offsets = csr_structure(mesh)
+def gather_to_csr(mesh, vals) -> sp.csr_matrix:
+    """CSR matrix from per-triangle local matrices ``vals`` (M, 3, 3) (the COO route)."""
+    indptr, _, offsets = csr_structure(mesh)
     data = _k.gather_csr(
         vals, indptr, offsets, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local
     )
+    return _csr(mesh, data)
+
+
+def _csr(mesh, data):
+    indptr, indices, _ = csr_structure(mesh)
     n = mesh.n_vertices
     mat = sp.csr_matrix((data, indices, indptr), shape=(n, n), copy=False)
     mat.has_sorted_indices = True
@@ -110,17 +119,23 @@ def assemble_stiffness(mesh, coef=None) -> sp.csr_matrix:
 
     Notes
     -----
-    Convenience wrapper around the Numba kernels ``stiffness_local`` (parallel
-    over triangles) and ``gather_csr`` (parallel over rows).
+    Convenience wrapper around the Numba kernel ``stiffness_csr`` (local
+    matrices fused with the gather into CSR, parallel over rows).
     """
-    vals = _k.stiffness_local(mesh.vertices, mesh.triangles, _coef_array(mesh, coef, "coef"))
-    return _to_csr(mesh, vals)
+    return _fused(mesh, _k.stiffness_csr, mesh.vertices, mesh.triangles, coef)
 
 
 def assemble_mass(mesh, coef=None) -> sp.csr_matrix:
     """Consistent P1 mass matrix ``(coef psi_b, psi_a)`` in CSR form (same pattern as A)."""
-    vals = _k.mass_local(mesh.areas, _coef_array(mesh, coef, "coef"))
-    return _to_csr(mesh, vals)
+    return _fused(mesh, _k.mass_csr, mesh.areas, coef)
+
+
+def _fused(mesh, kernel, *args):
+    """Run a fused local-matrix + gather kernel; the last of ``args`` is the coefficient."""
+    indptr, _, offsets = csr_structure(mesh)
+    coef = _coef_array(mesh, args[-1], "coef")
+    patches = (mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local)
+    return _csr(mesh, kernel(*args[:-1], coef, indptr, offsets, *patches))
 
 
 def evaluate_callable(f, x, y, name="f"):
@@ -129,7 +144,16 @@ def evaluate_callable(f, x, y, name="f"):
         val = f(x, y)
     except Exception as exc:
         raise DataError(f"{name}(x, y) raised {type(exc).__name__}: {exc}") from exc
-    val = np.asarray(val, dtype=np.float64) if np.ndim(val) else np.full(x.shape, float(val))
+    try:
+        raw = np.asarray(val)
+    except Exception as exc:
+        raise DataError(f"{name}(x, y) returned a value that is not an array: {exc}") from exc
+    if raw.dtype.kind not in "iufb":
+        raise DataError(
+            f"{name}(x, y) must return real numbers, got {type(val).__name__} "
+            f"with dtype {raw.dtype}"
+        )
+    val = raw.astype(np.float64) if raw.ndim else np.full(x.shape, float(raw))
     if val.shape != x.shape:
         try:
             val = np.broadcast_to(val, x.shape)

@@ -18,7 +18,7 @@ from __future__ import annotations
 import contextlib
 import os
 
-from .errors import ParameterError
+from .errors import InputTypeError, ParameterError
 
 __all__ = ["FASTMATH_FLAGS", "blas_limits", "get_threads", "set_threads"]
 
@@ -28,8 +28,8 @@ _settings = {"blas_threads": int(os.environ.get("FASTMEM_BLAS_THREADS", "1"))}
 
 
 def _check_count(name, value):
-    if isinstance(value, bool) or not isinstance(value, (int,)) and not hasattr(value, "__index__"):
-        raise ParameterError(f"{name} must be a positive integer, got {value!r}")
+    if isinstance(value, bool) or not hasattr(value, "__index__"):
+        raise InputTypeError(f"{name} must be a positive integer, got {value!r}")
     value = int(value)
     if value < 1:
         raise ParameterError(f"{name} must be a positive integer, got {value!r}")
@@ -46,18 +46,19 @@ def set_threads(numba: int | None = None, blas: int | None = None) -> None:
     blas : int, optional
         Threads the BLAS pool (OpenBLAS, MKL) may use inside solver phases.
     """
-    if numba is not None:
-        import numba as _nb
+    import numba as _nb
 
-        n = _check_count("numba threads", numba)
-        if n > _nb.config.NUMBA_NUM_THREADS:
-            raise ParameterError(
-                f"numba threads must be <= NUMBA_NUM_THREADS={_nb.config.NUMBA_NUM_THREADS}, "
-                f"got {n}"
-            )
+    # validate everything before changing anything
+    n = None if numba is None else _check_count("numba threads", numba)
+    b = None if blas is None else _check_count("blas threads", blas)
+    if n is not None and n > _nb.config.NUMBA_NUM_THREADS:
+        raise ParameterError(
+            f"numba threads must be <= NUMBA_NUM_THREADS={_nb.config.NUMBA_NUM_THREADS}, got {n}"
+        )
+    if n is not None:
         _nb.set_num_threads(n)
-    if blas is not None:
-        _settings["blas_threads"] = _check_count("blas threads", blas)
+    if b is not None:
+        _settings["blas_threads"] = b
 
 
 def get_threads() -> dict:

@@ -62,7 +62,7 @@ def _as_vertices(vertices) -> np.ndarray:
         )
     if arr.ndim != 2 or arr.shape[1] not in (2, 3):
         raise MeshError(f"vertices must have shape (N, 2) (or (N, 3) with z = 0), got {arr.shape}")
-    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    arr = np.array(arr, dtype=np.float64, order="C", copy=True)  # never alias the caller's
     if not np.isfinite(arr).all():
         bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
         raise MeshError(
@@ -95,7 +95,7 @@ def _as_triangles(triangles, n_vertices: int) -> np.ndarray:
             f"triangles reference vertex index {bad}, outside [0, {n_vertices - 1}] "
             f"({n_vertices} vertices)"
         )
-    return np.ascontiguousarray(arr, dtype=np.int64)
+    return np.array(arr, dtype=np.int64, order="C", copy=True)  # never alias the caller's
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:
@@ -411,7 +411,12 @@ class Mesh:
         """
         nx = _check_cells("nx", nx)
         ny = nx if ny is None else _check_cells("ny", ny)
-        x0, x1, y0, y1 = (float(b) for b in bounds)
+        try:
+            x0, x1, y0, y1 = (float(b) for b in bounds)
+        except (TypeError, ValueError) as exc:
+            raise ParameterError(
+                f"bounds must be four numbers (xmin, xmax, ymin, ymax), got {bounds!r}"
+            ) from exc
         if not (np.isfinite([x0, x1, y0, y1]).all() and x1 > x0 and y1 > y0):
             raise ParameterError(f"bounds must be finite with xmin < xmax, ymin < ymax: {bounds}")
         if diagonal not in ("right", "left", "symmetric"):
@@ -449,6 +454,7 @@ class Mesh:
         With the default ``diagonal="symmetric"`` and even ``n`` the mesh is
         invariant under the eight symmetries of the square.
         """
+        n = _check_cells("n", n)
         return cls.rectangle(n, n, (-1.0, 1.0, -1.0, 1.0), diagonal=diagonal)
 
     @classmethod
@@ -512,8 +518,8 @@ class Mesh:
             raise MeshError(f"mesh file not found: {path}")
         try:
             m = meshio.read(path)
-        except Exception as exc:  # meshio raises many types
-            raise MeshError(f"cannot read mesh file {path}: {exc}") from exc
+        except (Exception, SystemExit) as exc:  # meshio raises many types, even SystemExit
+            raise MeshError(f"cannot read mesh file {path}: {exc or type(exc).__name__}") from exc
         blocks = [c.data for c in m.cells if c.type == "triangle"]
         if not blocks:
             kinds = sorted({c.type for c in m.cells})
@@ -521,8 +527,9 @@ class Mesh:
                 f"mesh file {path} has no linear triangle cells (cell types: {kinds}); "
                 "fastmem needs a 2D P1 triangle mesh"
             )
-        tris = np.concatenate(blocks).astype(np.int64)
-        return cls._compact(_as_vertices(m.points), tris, **kwargs)
+        points = _as_vertices(m.points)
+        tris = _as_triangles(np.concatenate(blocks), points.shape[0])
+        return cls._compact(points, tris, **kwargs)
 
     def write(self, path, file_format: str | None = None) -> None:
         """Write the mesh with meshio (format from the suffix unless ``file_format`` is given)."""

@@ -121,6 +121,13 @@ def solve(
         or (max_newton < 1)
     ):
         raise ParameterError(f"max_newton must be a positive integer, got {max_newton!r}")
+    if path not in ("auto", "general", "decoupled"):
+        raise ParameterError(f"path must be 'auto', 'general' or 'decoupled', got {path!r}")
+    if path == "decoupled" and not scene.constant_mu:
+        raise ParameterError(
+            "path='decoupled' needs constant mu1 and mu2; this scene has per-triangle "
+            "values (use path='general' or 'auto')"
+        )
     mesh = scene.mesh
     init = _check_initial(initial, mesh)
     timings = {}

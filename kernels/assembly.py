@@ -16,6 +16,8 @@ from ._jit import pjit
 
 __all__ = [
     "gather_csr",
+    "mass_csr",
+    "stiffness_csr",
     "gather_vector",
     "mass_local",
     "stiffness_local",
@@ -132,3 +134,62 @@ def gather_vector(local, patch_ptr, patch_triangles, patch_local):
             s += local[patch_triangles[p], patch_local[p]]
         out[a] = s
     return out
+
+
+@pjit
+def stiffness_csr(
+    vertices, triangles, coef, indptr, offsets, patch_ptr, patch_triangles, patch_local
+):
+    """P1 stiffness straight into CSR data: the local kernel fused with the row gather.
+
+    Row ``a`` visits the triangles of its patch and adds row ``i`` (the local
+    index of ``a``) of each local matrix, recomputed on the fly; nothing of
+    size (M, 3, 3) is stored.  Same arithmetic as :func:`stiffness_local`.
+
+    Threading: parallel over rows; row ``a`` is written only by its owner.
+    """
+    n = patch_ptr.shape[0] - 1
+    data = np.zeros(indptr[n])
+    const = coef.shape[0] == 1
+    for a in prange(n):
+        base = indptr[a]
+        for p in range(patch_ptr[a], patch_ptr[a + 1]):
+            t = patch_triangles[p]
+            i = patch_local[p]
+            i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+            x0, y0 = vertices[i0, 0], vertices[i0, 1]
+            x1, y1 = vertices[i1, 0], vertices[i1, 1]
+            x2, y2 = vertices[i2, 0], vertices[i2, 1]
+            ex0, ey0 = x2 - x1, y2 - y1
+            ex1, ey1 = x0 - x2, y0 - y2
+            ex2, ey2 = x1 - x0, y1 - y0
+            area2 = ex2 * (-ey1) - (-ex1) * ey2
+            c = coef[0] if const else coef[t]
+            s = c / (2.0 * area2)
+            if i == 0:
+                exi, eyi = ex0, ey0
+            elif i == 1:
+                exi, eyi = ex1, ey1
+            else:
+                exi, eyi = ex2, ey2
+            data[base + offsets[t, i, 0]] += s * (exi * ex0 + eyi * ey0)
+            data[base + offsets[t, i, 1]] += s * (exi * ex1 + eyi * ey1)
+            data[base + offsets[t, i, 2]] += s * (exi * ex2 + eyi * ey2)
+    return data
+
+
+@pjit
+def mass_csr(areas, coef, indptr, offsets, patch_ptr, patch_triangles, patch_local):
+    """Consistent P1 mass straight into CSR data (fused kernel and gather, as stiffness_csr)."""
+    n = patch_ptr.shape[0] - 1
+    data = np.zeros(indptr[n])
+    const = coef.shape[0] == 1
+    for a in prange(n):
+        base = indptr[a]
+        for p in range(patch_ptr[a], patch_ptr[a + 1]):
+            t = patch_triangles[p]
+            i = patch_local[p]
+            c = (coef[0] if const else coef[t]) * areas[t] / 12.0
+            for j in range(3):
+                data[base + offsets[t, i, j]] += 2.0 * c if j == i else c
+    return data

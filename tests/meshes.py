@@ -13,3 +13,16 @@ def perturbed_square(n, amount, seed=20261121):
     interior = base.interior_vertices
     v[interior] += rng.uniform(-amount, amount, size=(interior.size, 2)) * (2.0 / n)
     return fm.Mesh(v, base.triangles)
+
+
+#: The eight symmetries of the square (-1, 1)^2 as maps of coordinates.
+SYMMETRIES = [
+    lambda x, y: (x, y),
+    lambda x, y: (-x, y),
+    lambda x, y: (x, -y),
+    lambda x, y: (-x, -y),
+    lambda x, y: (y, x),
+    lambda x, y: (-y, x),
+    lambda x, y: (y, -x),
+    lambda x, y: (-y, -x),
+]

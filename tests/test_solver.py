@@ -3,7 +3,7 @@ import logging
 import naive
 import numpy as np
 import pytest
-from meshes import perturbed_square
+from meshes import SYMMETRIES, perturbed_square
 from numpy.testing import assert_allclose
 
 import fastmem as fm
@@ -105,18 +105,6 @@ def test_per_triangle_mu_matches_naive(rng):
     # the discrete equations hold at interior vertices
     assert_allclose((a1 @ r.u1 - b * r.lam - f1)[ii], 0.0, atol=1e-12)
     assert r.active.sum() > 0
-
-
-SYMMETRIES = [
-    lambda x, y: (x, y),
-    lambda x, y: (-x, y),
-    lambda x, y: (x, -y),
-    lambda x, y: (-x, -y),
-    lambda x, y: (y, x),
-    lambda x, y: (-y, x),
-    lambda x, y: (y, -x),
-    lambda x, y: (-y, -x),
-]
 
 
 @pytest.mark.parametrize("path", ["decoupled", "general"])

@@ -1,0 +1,75 @@
+"""Exact Newton-min on the default scene and the manufactured solution (sparse direct solves).
+
+Reports Newton steps, factorisations, seconds per phase and, for the
+manufactured solution, the energy error, for both linear-step paths.
+
+    python -m bench.exact_solve [--quick] [--sizes 32 64 128 256 512] [--general-max 256]
+"""
+
+import argparse
+import time
+
+from bench._common import peak_rss_mb, progress, write_json
+
+
+def run(sizes, general_max):
+    import fastmem as fm
+
+    ms = fm.Manufactured()
+    rows = []
+    for n in sizes:
+        mesh = fm.Mesh.square(n)
+        for scene_name in ("default", "manufactured"):
+            for path in ("decoupled", "general"):
+                if path == "general" and n > general_max:
+                    continue
+                if scene_name == "default":
+                    scene = fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+                else:
+                    scene = ms.scene(mesh)
+                t0 = time.perf_counter()
+                r = fm.solve(scene, path=path)
+                wall = time.perf_counter() - t0
+                row = {
+                    "n": n,
+                    "vertices": mesh.n_vertices,
+                    "scene": scene_name,
+                    "path": path,
+                    "newton_steps": r.n_newton,
+                    "converged": r.converged,
+                    "factorizations": r.parameters["solver"]["factorizations"],
+                    "contact_fraction": r.contact_fraction,
+                    "wall_s": wall,
+                    "timings": r.timings,
+                    "final_res_norm": float(r.history["res_norm"][-1]),
+                }
+                if scene_name == "manufactured":
+                    row["energy_error"] = ms.energy_error(mesh, r.u1, r.u2)
+                    row["error_quadrature_degree"] = 7
+                row["peak_rss_mb"] = peak_rss_mb()
+                rows.append(row)
+                progress(
+                    f"n={n:4d} {scene_name:12s} {path:9s} steps={r.n_newton:3d} "
+                    f"time={wall:7.2f}s"
+                    + (f" err={row['energy_error']:.4e}" if "energy_error" in row else "")
+                )
+    return rows
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--sizes", type=int, nargs="*", default=None)
+    p.add_argument("--general-max", type=int, default=256)
+    args = p.parse_args(argv)
+    sizes = args.sizes or ([8, 16] if args.quick else [32, 64, 128, 256, 512])
+    payload = {
+        "parameters": {"sizes": sizes, "general_max": args.general_max},
+        "rows": run(sizes, args.general_max),
+    }
+    path = write_json("exact_solve_quick" if args.quick else "exact_solve", payload)
+    progress(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
