@@ -39,6 +39,9 @@ logger = logging.getLogger(__name__)
 
 METHODS = ("exact",)
 
+#: Relative residual ||R|| / ||(F1, F2, B lam)|| expected of an exact solve at convergence.
+ROUNDOFF_TOL = 1e-9
+
 #: Columns of the per-step history of an exact Newton-min solve.
 HISTORY_COLUMNS = ("k", "n_active", "n_changed", "comp_norm", "res_norm", "seconds")
 
@@ -199,6 +202,17 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
         seen[key] = k
         active = new_active
     timings["solve"] = time.perf_counter() - t_solve
+    f1, f2 = scene.loads
+    b = mesh.lumped_mass
+    scale = np.sqrt(f1 @ f1 + f2 @ f2 + 2 * (b * lam) @ (b * lam)) + np.finfo(float).tiny
+    res_rel = float(np.sqrt(r1 @ r1 + r2 @ r2) / scale)
+    if converged and res_rel > ROUNDOFF_TOL:
+        logger.warning(
+            "Newton-min: the active set settled but the relative residual is %.2e, above "
+            "round-off (%.0e): the linear solves are inaccurate (ill-conditioned data?)",
+            res_rel,
+            ROUNDOFF_TOL,
+        )
     if not converged:
         logger.warning(
             "Newton-min did not converge in %d steps (active set still changing by %d vertices)",
@@ -218,6 +232,7 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
         "path": step.name,
         "max_newton": max_newton,
         "factorizations": step.factorizations,
+        "relative_residual": res_rel,
         "threads": get_threads(),
     }
     full_active = np.zeros(mesh.n_vertices, dtype=bool)

@@ -79,6 +79,7 @@ def test_converged_solution_is_exactly_complementary(path, mu):
     assert len(h["k"]) == r.n_newton
     assert h["n_changed"][-1] == 0
     assert h["comp_norm"][-1] == 0.0
+    assert r.parameters["solver"]["relative_residual"] < 1e-12
 
 
 @pytest.mark.parametrize("mu", [(1.0, 1.0), (2.0, 0.5)])
