@@ -1,0 +1,292 @@
+"""Equilibrated flux reconstruction: RT1 mixed problems on vertex patches, in parallel.
+
+For vertex a the patch system (MATH.md section 4) in the dof basis of
+:mod:`.rt1` is the symmetric saddle-point matrix
+
+    [  M   -D^T   0 ] [sigma]   [ -T_i ]
+    [ -D    0     c ] [  r  ] = [ -G_i ]          (c: only for interior vertices)
+    [  0    c^T   0 ] [  s  ]   [  0   ]
+
+with M the RT1 mass on the patch, D the divergence-P1 coupling, c_q = (1, q)
+(the multiplier s enforces mean-zero r for interior vertices; it vanishes for
+compatible data), T_i = (tau_i^a, v) and G_i = (g_i^a, q).  Both membranes
+share the matrix: one LU factorisation, two right-hand sides.
+
+Patch edges: an edge containing a carries two dofs (shared by its two patch
+triangles, or free when it lies on the boundary of the domain); the edge
+opposite a carries none (zero normal flux) unless a is a boundary vertex and
+the edge lies on the boundary (free).  Interior vertices have zero normal flux
+on their whole patch boundary and the mean-zero multiplier space.
+
+Threading: vertices are processed by colour classes of a proper colouring of
+the vertex graph; no two vertices of one class share a triangle, so each
+patch adds its sigma^a straight into the rows of its own triangles without
+races, and the result does not depend on the number of threads.
+"""
+
+import numpy as np
+from numba import prange
+
+from ._jit import jit, pjit
+from .rt1 import rt1_local
+
+__all__ = ["color_vertices", "reconstruct_colored"]
+
+
+@jit
+def color_vertices(n, indptr, indices):
+    """Greedy proper colouring of the vertex graph (CSR adjacency, diagonal included).
+
+    Returns
+    -------
+    colors : int64 (n,)
+    n_colors : int
+    """
+    colors = np.full(n, -1, dtype=np.int64)
+    n_colors = 0
+    used = np.full(64, -1, dtype=np.int64)
+    for a in range(n):
+        for k in range(indptr[a], indptr[a + 1]):
+            b = indices[k]
+            if b != a and colors[b] >= 0 and colors[b] < 64:
+                used[colors[b]] = a
+        c = 0
+        while c < 64 and used[c] == a:
+            c += 1
+        colors[a] = c
+        if c + 1 > n_colors:
+            n_colors = c + 1
+    return colors, n_colors
+
+
+@jit
+def _patch_solve(
+    a,
+    vertices,
+    triangles,
+    diameters,
+    tri_edges,
+    edge_tris,
+    boundary,
+    patch_ptr,
+    patch_triangles,
+    patch_local,
+    u1,
+    u2,
+    lam,
+    rho1,
+    rho2,
+    mu1,
+    mu2,
+    f1c,
+    f2c,
+    load1,
+    load2,
+    bary,
+    weights,
+    out,
+):
+    pstart = patch_ptr[a]
+    nt = patch_ptr[a + 1] - pstart
+    interior = not boundary[a]
+    # --- patch edges that carry dofs
+    edge_ids = np.empty(3 * nt, dtype=np.int64)
+    ne = 0
+    loc2patch = np.full((nt, 8), -1, dtype=np.int64)
+    for p in range(nt):
+        t = patch_triangles[pstart + p]
+        i = patch_local[pstart + p]
+        for k in range(3):
+            e = tri_edges[t, k]
+            on_bnd = edge_tris[e, 1] < 0
+            if k == i and not (on_bnd and not interior):
+                continue  # zero normal flux on this patch-boundary edge
+            s = -1
+            for q in range(ne):
+                if edge_ids[q] == e:
+                    s = q
+                    break
+            if s < 0:
+                edge_ids[ne] = e
+                s = ne
+                ne += 1
+            loc2patch[p, 2 * k] = 2 * s
+            loc2patch[p, 2 * k + 1] = 2 * s + 1
+    n_sig = 2 * ne + 2 * nt
+    for p in range(nt):
+        loc2patch[p, 6] = 2 * ne + 2 * p
+        loc2patch[p, 7] = 2 * ne + 2 * p + 1
+    n_tot = n_sig + 3 * nt + (1 if interior else 0)
+    mat = np.zeros((n_tot, n_tot))
+    rhs = np.zeros((n_tot, 2))
+    coefs = np.empty((nt, 8, 8))
+    pts = np.empty((3, 2))
+    mass = np.empty((8, 8))
+    div = np.empty((3, 8))
+    tau = np.empty((3, 2, 8))
+    work = np.empty((8, 2))
+    lam_a = 0.0 if not interior else lam[a]
+    r1a = 0.0 if not interior else rho1[a]
+    r2a = 0.0 if not interior else rho2[a]
+    for p in range(nt):
+        t = patch_triangles[pstart + p]
+        i = patch_local[pstart + p]
+        tri = triangles[t]
+        for v in range(3):
+            pts[v, 0] = vertices[tri[v], 0]
+            pts[v, 1] = vertices[tri[v], 1]
+        area = rt1_local(pts, tri, diameters[t], bary, weights, coefs[p], mass, div, tau, work)
+        # gradients of the hat functions: rot(edge opposite) / (2|K|)
+        gx = np.empty(3)
+        gy = np.empty(3)
+        for v in range(3):
+            ia = (v + 1) % 3
+            ib = (v + 2) % 3
+            gx[v] = -(pts[ib, 1] - pts[ia, 1]) / (2.0 * area)
+            gy[v] = (pts[ib, 0] - pts[ia, 0]) / (2.0 * area)
+        du1x = u1[tri[0]] * gx[0] + u1[tri[1]] * gx[1] + u1[tri[2]] * gx[2]
+        du1y = u1[tri[0]] * gy[0] + u1[tri[1]] * gy[1] + u1[tri[2]] * gy[2]
+        du2x = u2[tri[0]] * gx[0] + u2[tri[1]] * gx[1] + u2[tri[2]] * gx[2]
+        du2y = u2[tri[0]] * gy[0] + u2[tri[1]] * gy[1] + u2[tri[2]] * gy[2]
+        m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
+        m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
+        # sigma-sigma block and the flux target -(tau, v), tau = mu psi_a grad u
+        for r in range(8):
+            pr = loc2patch[p, r]
+            if pr < 0:
+                continue
+            for c in range(8):
+                pc = loc2patch[p, c]
+                if pc >= 0:
+                    mat[pr, pc] += mass[r, c]
+            rhs[pr, 0] -= m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
+            rhs[pr, 1] -= m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
+        # divergence coupling, data (g, q), mean constraint
+        q0 = n_sig + 3 * p
+        dot1 = m1 * (gx[i] * du1x + gy[i] * du1y)
+        dot2 = m2 * (gx[i] * du2x + gy[i] * du2y)
+        for j in range(3):
+            for c in range(8):
+                pc = loc2patch[p, c]
+                if pc >= 0:
+                    mat[q0 + j, pc] -= div[j, c]
+                    mat[pc, q0 + j] -= div[j, c]
+            mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
+            if load1.shape[0] == 1:
+                l1 = f1c * mij
+            else:
+                l1 = load1[t, i, j]
+            if load2.shape[0] == 1:
+                l2 = f2c * mij
+            else:
+                l2 = load2[t, i, j]
+            g1 = l1 - dot1 * area / 3.0 + (lam_a - r1a) * mij
+            g2 = l2 - dot2 * area / 3.0 + (-lam_a - r2a) * mij
+            rhs[q0 + j, 0] -= g1
+            rhs[q0 + j, 1] -= g2
+            if interior:
+                mat[n_tot - 1, q0 + j] = area / 3.0
+                mat[q0 + j, n_tot - 1] = area / 3.0
+    sol = np.linalg.solve(mat, rhs)
+    # add sigma^a to the canonical coefficients of each patch triangle
+    for p in range(nt):
+        t = patch_triangles[pstart + p]
+        for m in range(8):
+            s1 = 0.0
+            s2 = 0.0
+            for r in range(8):
+                pr = loc2patch[p, r]
+                if pr >= 0:
+                    s1 += coefs[p, m, r] * sol[pr, 0]
+                    s2 += coefs[p, m, r] * sol[pr, 1]
+            out[0, t, m] += s1
+            out[1, t, m] += s2
+
+
+@pjit
+def reconstruct_colored(
+    order,
+    color_ptr,
+    vertices,
+    triangles,
+    diameters,
+    tri_edges,
+    edge_tris,
+    boundary,
+    patch_ptr,
+    patch_triangles,
+    patch_local,
+    u1,
+    u2,
+    lam,
+    rho1,
+    rho2,
+    mu1,
+    mu2,
+    f1c,
+    f2c,
+    load1,
+    load2,
+    bary,
+    weights,
+):
+    """Equilibrated fluxes of both membranes, canonical RT1 coefficients (2, M, 8).
+
+    Parameters
+    ----------
+    order, color_ptr : int64
+        Vertices sorted by colour; class c is ``order[color_ptr[c]:color_ptr[c+1]]``.
+    vertices, triangles, diameters, tri_edges, edge_tris, boundary :
+        Mesh arrays (boundary: bool mask of boundary vertices).
+    patch_ptr, patch_triangles, patch_local : int64
+        Vertex patches (CSR).
+    u1, u2, lam : float64 (N,)
+        Nodal values of the triple.
+    rho1, rho2 : float64 (N,)
+        Nodal ``R_i,a / B_a`` (zero on the boundary).
+    mu1, mu2 : float64 (1,) or (M,)
+        Tensions.
+    f1c, f2c : float
+        Constant loads, used when ``load1``/``load2`` has shape (1, 3, 3).
+    load1, load2 : float64 (M, 3, 3) or (1, 3, 3)
+        Load moments ``int_K f lambda_i lambda_j`` for non-constant data.
+    bary, weights : float64
+        Quadrature rule exact for degree 4.
+
+    Threading: parallel over the vertices of one colour class at a time; a
+    patch writes only the rows of its own triangles, which no other vertex of
+    the class touches.
+    """
+    m = triangles.shape[0]
+    out = np.zeros((2, m, 8))
+    for c in range(color_ptr.shape[0] - 1):
+        lo = color_ptr[c]
+        hi = color_ptr[c + 1]
+        for k in prange(hi - lo):
+            _patch_solve(
+                order[lo + k],
+                vertices,
+                triangles,
+                diameters,
+                tri_edges,
+                edge_tris,
+                boundary,
+                patch_ptr,
+                patch_triangles,
+                patch_local,
+                u1,
+                u2,
+                lam,
+                rho1,
+                rho2,
+                mu1,
+                mu2,
+                f1c,
+                f2c,
+                load1,
+                load2,
+                bary,
+                weights,
+                out,
+            )
+    return out
