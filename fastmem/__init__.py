@@ -4,7 +4,8 @@ Quick start::
 
     import fastmem as fm
     scene = fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
-    result = fm.solve(scene)
+    result = fm.solve(scene, estimate=True)
+    print(result.eta, result.eta_components)
     result.save("run.h5")
 """
 
@@ -12,6 +13,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from . import errors
 from .archive import load
+from .bound import estimate
 from .config import get_threads, set_threads
 from .errors import FastmemError
 from .manufactured import Manufactured
@@ -34,6 +36,7 @@ __all__ = [
     "Scene",
     "__version__",
     "errors",
+    "estimate",
     "get_threads",
     "load",
     "set_threads",

@@ -79,6 +79,11 @@ def _build_parser() -> argparse.ArgumentParser:
         help=f"archive to write (default {DEFAULT_OUTPUT})",
     )
     r.add_argument("--no-save", action="store_true", help="do not write an archive")
+    r.add_argument(
+        "--no-estimate",
+        action="store_true",
+        help="skip the a posteriori error bound (no flux reconstruction)",
+    )
     r.add_argument("-q", "--quiet", action="store_true", help="no per-step monitor")
 
     i = sub.add_parser("info", help="summarise a result archive")
@@ -143,6 +148,7 @@ def _cmd_run(args) -> int:
         path=args.path,
         max_newton=args.max_newton,
         monitor=_Monitor(not args.quiet),
+        estimate=not args.no_estimate,
     )
     result.timings["mesh"] = t_mesh
     status = "converged" if result.converged else "NOT CONVERGED (step limit reached)"
@@ -155,6 +161,13 @@ def _cmd_run(args) -> int:
         f"({int(result.active.sum())} contact vertices)"
     )
     _out(f"  final |R|         {result.history['res_norm'][-1]:.3e}")
+    if result.estimate is not None:
+        tot = result.estimate.totals
+        _out(f"  error bound eta   {tot['eta']:.4e}   (guaranteed: |||u - u_h||| <= eta)")
+        _out(f"    eta_disc        {tot['eta_disc']:.4e}")
+        _out(f"    eta_lin         {tot['eta_lin']:.4e}")
+        _out(f"    eta_alg         {tot['eta_alg']:.4e}")
+        _out(f"  estimate seconds  {result.timings['estimate']:.3f}")
     _out(f"  seconds           {result.timings['total']:.3f} solve, {t_mesh:.3f} mesh")
     if not args.no_save:
         result.save(args.output)
@@ -183,8 +196,9 @@ def _cmd_info(args) -> int:
         if key in params:
             _out(f"  {key:<17} {params[key]}")
     if summary["has_estimate"]:
-        for k, v in summary["estimator_totals"].items():
-            _out(f"  {k:<17} {v:.4e}")
+        for k in ("eta", "eta_disc", "eta_lin", "eta_alg"):
+            if k in summary["estimator_totals"]:
+                _out(f"  {k:<17} {summary['estimator_totals'][k]:.4e}")
     _out(
         f"  history           {summary['n_history_rows']} rows: "
         f"{', '.join(summary['history_columns'])}"

@@ -7,9 +7,36 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Estimate", "Result"]
+__all__ = ["Estimate", "Result", "check_triple"]
 
 logger = logging.getLogger(__name__)
+
+
+def check_triple(mesh, triple, prefix=""):
+    """Validate a nodal triple ``(u1, u2, lam)``; return three C-contiguous float64 copies.
+
+    Raises InputTypeError for non-real dtypes and DataError for wrong shapes
+    or non-finite values, naming the array (``prefix`` + name).
+    """
+    from .errors import DataError, InputTypeError
+
+    if not isinstance(triple, (tuple, list)) or len(triple) != 3:
+        raise InputTypeError(f"{prefix}(u1, u2, lam) must be a triple of nodal arrays")
+    n = mesh.n_vertices
+    out = []
+    for name, a in zip(("u1", "u2", "lam"), triple, strict=True):
+        arr = np.asarray(a)
+        if arr.dtype.kind not in "iuf":
+            raise InputTypeError(f"{prefix}{name} must be real numbers, got dtype {arr.dtype}")
+        if arr.shape != (n,):
+            raise DataError(
+                f"{prefix}{name} must have one value per vertex, shape ({n},), got {arr.shape}"
+            )
+        arr = np.array(arr, dtype=np.float64, order="C", copy=True)
+        if not np.isfinite(arr).all():
+            raise DataError(f"{prefix}{name} contains NaN or inf")
+        out.append(arr)
+    return out
 
 
 @dataclass

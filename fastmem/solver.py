@@ -28,9 +28,9 @@ import time
 import numpy as np
 
 from .config import blas_limits, get_threads
-from .errors import CyclingError, DataError, InputTypeError, ParameterError
+from .errors import CyclingError, InputTypeError, ParameterError
 from .linear import make_step, residuals
-from .result import Result
+from .result import Result, check_triple
 from .scene import Scene
 
 __all__ = ["HISTORY_COLUMNS", "METHODS", "complementarity", "solve"]
@@ -58,20 +58,7 @@ def _active_key(active: np.ndarray) -> bytes:
 def _check_initial(initial, mesh):
     if initial is None:
         return None
-    if not isinstance(initial, (tuple, list)) or len(initial) != 3:
-        raise InputTypeError("initial must be a triple (u1, u2, lam) of nodal arrays")
-    out = []
-    for name, arr in zip(("u1", "u2", "lam"), initial, strict=True):
-        a = np.asarray(arr)
-        if a.dtype.kind not in "iuf":
-            raise InputTypeError(f"initial {name} must be real numbers, got dtype {a.dtype}")
-        if a.shape != (mesh.n_vertices,):
-            raise DataError(f"initial {name} must have shape ({mesh.n_vertices},), got {a.shape}")
-        a = np.asarray(a, dtype=np.float64)
-        if not np.isfinite(a).all():
-            raise DataError(f"initial {name} contains NaN or inf")
-        out.append(a)
-    return out
+    return check_triple(mesh, initial, prefix="initial ")
 
 
 def solve(
@@ -83,6 +70,7 @@ def solve(
     initial=None,
     monitor=None,
     blas_threads: int | None = None,
+    estimate: bool = False,
 ) -> Result:
     """Solve the discrete two-membrane contact problem with Newton-min.
 
@@ -104,6 +92,10 @@ def solve(
         Called with each history row (a dict) as soon as it is recorded.
     blas_threads : int, optional
         BLAS threads during the solve (default :func:`fastmem.get_threads`).
+    estimate : bool
+        Attach the guaranteed a posteriori error bound of the returned triple
+        (:func:`fastmem.estimate`; costs one flux reconstruction).  Without it
+        no flux is reconstructed.
 
     Returns
     -------
@@ -116,6 +108,8 @@ def solve(
     """
     if not isinstance(scene, Scene):
         raise InputTypeError(f"scene must be a fastmem.Scene, got {type(scene).__name__}")
+    if not isinstance(estimate, (bool, np.bool_)):
+        raise InputTypeError(f"estimate must be True or False, got {estimate!r}")
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
     if (
@@ -143,6 +137,14 @@ def solve(
         step = make_step(scene, path)
         timings["setup"] = time.perf_counter() - t0
         result = _newton(scene, step, method, max_newton, init, monitor, timings)
+        if estimate:
+            from .bound import estimate as _estimate
+
+            t0 = time.perf_counter()
+            result.estimate = _estimate(
+                scene, result.u1, result.u2, result.lam, result.r1, result.r2
+            )
+            timings["estimate"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     return result
 

@@ -110,20 +110,22 @@ def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, wo
         for m in range(8):
             g[6, m] += wq * work[m, 0] * h / area
             g[7, m] += wq * work[m, 1] * h / area
-            for n in range(8):
+            for n in range(m, 8):
                 mass_m[m, n] += wq * (work[m, 0] * work[n, 0] + work[m, 1] * work[n, 1])
         # divergence of the monomials (physical): (1/h) * [0, 1, 0, 0, 0, 1, 3 xi, 3 eta]
-        dvals = np.zeros(8)
-        dvals[1] = 1.0 / h
-        dvals[5] = 1.0 / h
-        dvals[6] = 3.0 * xi / h
-        dvals[7] = 3.0 * eta / h
         for qq in range(3):
             lam = bary[q, qq]
+            wl = wq * lam / h
+            div_m[qq, 1] += wl
+            div_m[qq, 5] += wl
+            div_m[qq, 6] += 3.0 * xi * wl
+            div_m[qq, 7] += 3.0 * eta * wl
             for m in range(8):
-                div_m[qq, m] += wq * dvals[m] * lam
                 tau_m[qq, 0, m] += wq * lam * work[m, 0]
                 tau_m[qq, 1, m] += wq * lam * work[m, 1]
+    for m in range(8):
+        for n in range(m):
+            mass_m[m, n] = mass_m[n, m]
     c = np.linalg.inv(g)
     coef_out[:, :] = c
     # transform to the dof basis: M = C^T Mm C, D = Dm C, T = Tm C

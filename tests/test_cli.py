@@ -66,8 +66,11 @@ def test_run_subprocess(tmp_path):
     printed = [ln for ln in proc.stdout.splitlines() if "contact fraction" in ln][0]
     assert float(printed.split()[2]) == pytest.approx(result.contact_fraction, abs=5e-5)
     # one monitor row per Newton step
-    rows = [ln.split() for ln in proc.stdout.splitlines()
-            if ln.strip() and ln.split()[0].isdigit() and len(ln.split()) == 6]
+    rows = [
+        ln.split()
+        for ln in proc.stdout.splitlines()
+        if ln.strip() and ln.split()[0].isdigit() and len(ln.split()) == 6
+    ]
     assert [int(r[0]) for r in rows] == list(range(1, result.n_newton + 1))
 
 
@@ -133,8 +136,9 @@ def test_export(archive, tmp_path, capsys, suffix):
     back = meshio.read(out)
     assert back.points.shape[0] == result.mesh.n_vertices
     assert_allclose(np.asarray(back.point_data["u1"]).ravel(), result.u1, rtol=0, atol=0)
-    assert_allclose(np.asarray(back.point_data["gap"]).ravel(), result.u1 - result.u2,
-                    rtol=0, atol=1e-15)
+    assert_allclose(
+        np.asarray(back.point_data["gap"]).ravel(), result.u1 - result.u2, rtol=0, atol=1e-15
+    )
 
 
 @pytest.mark.parametrize(
@@ -144,16 +148,18 @@ def test_export(archive, tmp_path, capsys, suffix):
         pytest.param(["run", "--n", "4", "--no-save", "--mu2", "0"], "mu2", id="mu2-zero"),
         pytest.param(["run", "--n", "4", "--no-save", "--g", "-0.5"], "g", id="g-negative"),
         pytest.param(["run", "--n", "4", "--no-save", "--f1", "nan"], "f1", id="f1-nan"),
-        pytest.param(["run", "--n", "4", "--no-save", "--method", "magic"], "method",
-                     id="method"),
-        pytest.param(["run", "--n", "4", "--no-save", "--refine", "-1"], "--refine",
-                     id="refine-negative"),
-        pytest.param(["run", "--n", "4", "--no-save", "--max-newton", "0"], "max_newton",
-                     id="max-newton"),
+        pytest.param(["run", "--n", "4", "--no-save", "--method", "magic"], "method", id="method"),
+        pytest.param(
+            ["run", "--n", "4", "--no-save", "--refine", "-1"], "--refine", id="refine-negative"
+        ),
+        pytest.param(
+            ["run", "--n", "4", "--no-save", "--max-newton", "0"], "max_newton", id="max-newton"
+        ),
         pytest.param(["run", "--mesh", "{tmp}/missing.msh"], "missing.msh", id="mesh-missing"),
         pytest.param(["info", "{tmp}/not-there.h5"], "not-there.h5", id="info-missing"),
-        pytest.param(["export", "{tmp}/not-there.h5", "{tmp}/o.vtu"], "not-there.h5",
-                     id="export-missing"),
+        pytest.param(
+            ["export", "{tmp}/not-there.h5", "{tmp}/o.vtu"], "not-there.h5", id="export-missing"
+        ),
     ],
 )
 def test_bad_input_exit_status_2(tmp_path, capsys, argv, field):
@@ -180,7 +186,10 @@ def test_export_bad_suffix(archive, tmp_path, capsys):
 def test_bad_input_subprocess(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "fastmem", "run", "--mu1", "-1", "--n", "4", "--no-save"],
-        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
     )
     assert proc.returncode == 2
     assert "error" in proc.stderr
@@ -254,3 +263,17 @@ def test_run_corrupt_mesh_file(tmp_path, capsys):
     assert rc == 2
     assert "fastmem: error:" in err
     assert "corrupt.msh" in err
+
+
+def test_run_prints_the_bound_and_no_estimate_skips_it(tmp_path, capsys):
+    from fastmem.cli import main
+
+    assert main(["run", "--n", "8", "-q", "-o", str(tmp_path / "a.h5")]) == 0
+    out = capsys.readouterr().out
+    assert "error bound eta" in out
+    assert "eta_disc" in out
+    assert "eta_alg" in out
+    assert fm.load(tmp_path / "a.h5").eta > 0
+    assert main(["run", "--n", "8", "-q", "--no-estimate", "-o", str(tmp_path / "b.h5")]) == 0
+    assert "eta" not in capsys.readouterr().out
+    assert fm.load(tmp_path / "b.h5").estimate is None

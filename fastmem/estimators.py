@@ -1,0 +1,449 @@
+r"""Components of the guaranteed a posteriori error bound (MATH.md sections 5 and 6).
+
+The bound :math:`|||u - u_h||| \le \eta` holds for any triple
+``(u1h, u2h, lam_h)`` (exact, inexact, non-converged or infeasible) with
+``u1h = g``, ``u2h = 0`` and ``lam_h = 0`` on the boundary, given equilibrated
+fluxes :math:`\sigma_{ih}` (MATH.md section 4).  The flux terms
+:math:`\eta_{F,K,i}` come from the flux reconstruction and are passed in;
+this module computes everything else and combines it:
+
+.. math::
+
+    \eta_{osc,K,i} &= \frac{h_K}{\pi}\, \mu_{i,K}^{-1/2}\, \|f_i - \Pi_K f_i\|_K
+        && \text{(data oscillation; } \Pi_K \text{ the } L^2 \text{ projection onto } P_1(K))\\
+    \eta_{nc,K} &= \mu_{2,K}^{1/2} \|\nabla\delta\|_K,\quad \delta = (u_{2h} - u_{1h})^+
+        && \text{(non-conformity: the iterate violates } u_1 \ge u_2)\\
+    \eta_{C,K} &= (\hat\lambda, (u_{1h} - u_{2h})^+)_K \ge 0,\quad \hat\lambda = \lambda_h^+
+        && \text{(complementarity)}\\
+    \eta_{glob,1} &= C_F \mu_1^{-1/2} \|\rho_1 + \lambda^-\|_\Omega,\quad
+    \eta_{glob,2} = C_F \mu_2^{-1/2} \|\rho_2 - \lambda^-\|_\Omega
+        && \text{(algebraic residual and negative multiplier)}
+
+with :math:`\hat\lambda` and :math:`\lambda^- = \hat\lambda - \lambda_h \ge 0` the
+P1 functions of nodal values :math:`\max(\lambda_a, 0)` and
+:math:`\max(\lambda_a, 0) - \lambda_a`, :math:`\rho_i` the P1 function of nodal
+values :math:`R_{i,a} / B_a` (zero on the boundary) and
+:math:`C_F = 1 / (\pi \sqrt{1/L_x^2 + 1/L_y^2})` the Friedrichs constant of the
+bounding box of :math:`\Omega`.  Then
+
+.. math::
+
+    a &= \Big(\sum_K (\eta_{osc,K,1} + \eta_{F,K,1})^2
+          + (\eta_{osc,K,2} + \eta_{F,K,2} + \eta_{nc,K})^2\Big)^{1/2}
+         + (\eta_{glob,1}^2 + \eta_{glob,2}^2)^{1/2}, \qquad
+    c = \sum_K \eta_{C,K},\\
+    \eta &= \frac{a + \sqrt{a^2 + 4c}}{2} + \Big(\sum_K \eta_{nc,K}^2\Big)^{1/2},
+
+and the components used for adaptive stopping (MATH.md section 6)
+
+.. math::
+
+    \eta_{alg} &= \Big(\sum_i (C_F \mu_i^{-1/2} \|\rho_i\|)^2\Big)^{1/2}, \qquad
+    \eta_{lin} = C_F (\mu_1^{-1} + \mu_2^{-1})^{1/2} \|\lambda^-\|
+                 + 2 \Big(\sum_K \eta_{nc,K}^2\Big)^{1/2},\\
+    \eta_{disc} &= \Big(\sum_K \sum_i (\eta_{osc,K,i} + \eta_{F,K,i})^2\Big)^{1/2} + \sqrt{c},
+
+which satisfy :math:`\eta \le \eta_{disc} + \eta_{lin} + \eta_{alg}`.
+
+Exactness.  :math:`\eta_{nc}` and :math:`\eta_C` involve positive parts of P1
+functions; they are integrated exactly by cutting every triangle along the
+zero line of the gap (:mod:`fastmem.kernels.cut`).  Global norms use the
+consistent P1 mass matrix (assembled once, cached on the scene under
+``"M"``).  The oscillation is identically zero for constant and per-vertex
+(P1) loads and is then not computed; for callable loads it is evaluated with
+the quadrature rule of degree ``scene.load_degree``, the rule of the load
+vector, so the bound is guaranteed up to that rule's error on the data.
+
+Workflow::
+
+    loc = local_terms(scene, u1, u2, lam)
+    glob = global_terms(scene, u1, u2, lam, r1, r2)
+    est = combine(eta_F1, eta_F2, loc, glob)   # eta_F from the flux reconstruction
+    est["totals"]["eta"], est["maps"]["eta_C"]
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .assembly import assemble_mass, evaluate_callable
+from .errors import DataError
+from .kernels import cut as _cut
+from .quadrature import quadrature_points, triangle_rule
+
+__all__ = ["combine", "friedrichs_constant", "global_terms", "local_terms"]
+
+logger = logging.getLogger(__name__)
+
+# Triangles per block when evaluating callable loads for the oscillation
+# (bounds the (block, n_points) temporaries).
+_OSC_BLOCK = 1 << 18
+
+
+def friedrichs_constant(mesh) -> float:
+    r"""Friedrichs constant of :math:`H^1_0(\Omega)` from the bounding box of the mesh.
+
+    Parameters
+    ----------
+    mesh : Mesh
+
+    Returns
+    -------
+    float
+        :math:`C_F = 1 / (\pi \sqrt{1/L_x^2 + 1/L_y^2})` with :math:`L_x, L_y`
+        the sides of ``mesh.bounding_box``, so that
+        :math:`\|v\|_\Omega \le C_F \|\nabla v\|_\Omega` for
+        :math:`v \in H^1_0(\Omega)` (Ω lies in the box; the constant of the box
+        is its smallest Dirichlet eigenvalue to the power -1/2).
+
+    Examples
+    --------
+    >>> import fastmem as fm
+    >>> round(friedrichs_constant(fm.Mesh.square(2)), 12)  # 2 / (pi sqrt 2)
+    0.450158158079
+    """
+    xmin, xmax, ymin, ymax = mesh.bounding_box
+    lx, ly = xmax - xmin, ymax - ymin
+    return 1.0 / (math.pi * math.sqrt(1.0 / lx**2 + 1.0 / ly**2))
+
+
+def _nodal(mesh, x, name) -> np.ndarray:
+    """Validate a nodal vector and return it as contiguous float64."""
+    arr = np.asarray(x)
+    if arr.dtype.kind not in "iuf":
+        raise DataError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    if arr.shape != (mesh.n_vertices,):
+        raise DataError(
+            f"{name} must have one value per vertex, shape ({mesh.n_vertices},), got {arr.shape}"
+        )
+    arr = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(arr).all():
+        raise DataError(f"{name} contains NaN or inf at {int((~np.isfinite(arr)).sum())} vertices")
+    return arr
+
+
+def _lambda_parts(mesh, lam):
+    """Nodal ``(lam_hat, lam_minus)`` = ``(max(lam, 0), max(lam, 0) - lam)``, 0 on the boundary."""
+    lam = lam.copy()
+    lam[mesh.boundary_vertex_mask] = 0.0
+    lam_hat = np.maximum(lam, 0.0)
+    return lam_hat, lam_hat - lam
+
+
+def _oscillation(scene, i) -> np.ndarray:
+    r"""Per-triangle :math:`\eta_{osc,K,i}`, shape (M,); zeros without work for P1 data.
+
+    For callable :math:`f_i`, with the rule :math:`(x_q, w_q)` of degree
+    ``scene.load_degree``: :math:`b_{K,j} = |K| \sum_q w_q f(x_q) \phi_j(x_q)`,
+    :math:`\Pi_K f = \sum_j c_j \phi_j` with :math:`M_K c = b_K`, and
+    :math:`\|f - \Pi_K f\|_K^2 = |K| \sum_q w_q (f - \Pi_K f)^2(x_q)`.  For a
+    rule of degree >= 2 this equals :math:`Q(f^2) - (\Pi_K f, \Pi_K f)_K`
+    exactly (``Q(f Π f) = c·b = c·M c``), but it is evaluated in the form
+    above: a sum of squares, free of cancellation and never negative.
+    """
+    name = f"f{i}"
+    mesh = scene.mesh
+    m = mesh.n_triangles
+    if scene.data_kind(name) != "callable":  # constant or P1 data: f = Pi_K f exactly
+        return np.zeros(m)
+    f = getattr(scene, name)
+    mu = scene.mu1 if i == 1 else scene.mu2
+    bary, weights = triangle_rule(scene.load_degree)
+    sq = np.empty(m)  # ||f - Pi_K f||_K^2 / |K|
+    for start in range(0, m, _OSC_BLOCK):
+        stop = min(start + _OSC_BLOCK, m)
+        x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
+        fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
+        mom = (fv * weights) @ bary  # (m_b, 3): (f, phi_j)_K / |K|
+        # M_K^{-1} = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]  =>  c = 12 mom - 3 sum(mom)
+        coef = 12.0 * mom - 3.0 * mom.sum(axis=1, keepdims=True)
+        diff = fv - coef @ bary.T
+        sq[start:stop] = (diff * diff) @ weights
+    norm = np.sqrt(sq * mesh.areas)
+    return (mesh.diameters / math.pi) * norm / np.sqrt(mu)
+
+
+def local_terms(scene, u1, u2, lam) -> dict:
+    r"""Per-triangle estimators that need no flux: non-conformity, complementarity, oscillation.
+
+    Parameters
+    ----------
+    scene : Scene
+        The problem; ``scene.mu1``, ``scene.mu2`` may be floats or per-triangle
+        arrays (M,) (the value :math:`\mu_{i,K}` of each triangle is used).
+    u1, u2, lam : ndarray of shape (N,)
+        Nodal values of the iterate.  ``lam`` may have any sign; its entries at
+        boundary vertices are ignored (:math:`\lambda_h \in X_{0h}`).
+
+    Returns
+    -------
+    dict of str to ndarray of shape (M,)
+        ``eta_nc``
+            :math:`\mu_{2,K}^{1/2} \|\nabla\delta\|_K` with
+            :math:`\delta = (u_{2h} - u_{1h})^+`, i.e.
+            :math:`\|\nabla\delta\|_K^2 = |\nabla(u_{2h} - u_{1h})|^2_K\,
+            |\{u_{2h} - u_{1h} > 0\} \cap K|`.
+        ``eta_C``
+            :math:`(\hat\lambda, (u_{1h} - u_{2h})^+)_K \ge 0`,
+            :math:`\hat\lambda` the P1 function of nodal values
+            :math:`\max(\lambda_a, 0)`.
+        ``eta_osc1``, ``eta_osc2``
+            :math:`(h_K/\pi)\, \mu_{i,K}^{-1/2} \|f_i - \Pi_K f_i\|_K`: zeros
+            (not computed) for constant and per-vertex loads; for callables,
+            evaluated with the quadrature rule of degree ``scene.load_degree``.
+
+    Notes
+    -----
+    The positive parts are integrated exactly by the Numba kernels
+    :func:`fastmem.kernels.cut.positive_area` and
+    :func:`fastmem.kernels.cut.positive_product` (parallel over triangles),
+    which split each triangle along the zero line of the gap.
+    """
+    mesh = scene.mesh
+    u1 = _nodal(mesh, u1, "u1")
+    u2 = _nodal(mesh, u2, "u2")
+    lam = _nodal(mesh, lam, "lam")
+    gap = u1 - u2
+    lam_hat, _ = _lambda_parts(mesh, lam)
+    v, t = mesh.vertices, mesh.triangles
+    # |grad(u2 - u1)|^2 on each triangle (the gradient is constant there)
+    grad = np.einsum("mij,mi->mj", mesh.gradients, gap[t])
+    grad_sq = np.einsum("mj,mj->m", grad, grad)
+    neg_area = _cut.positive_area(v, t, -gap)
+    eta_nc = np.sqrt(scene.mu2 * grad_sq * neg_area)
+    eta_c = _cut.positive_product(v, t, gap, lam_hat)
+    return {
+        "eta_nc": eta_nc,
+        "eta_C": eta_c,
+        "eta_osc1": _oscillation(scene, 1),
+        "eta_osc2": _oscillation(scene, 2),
+    }
+
+
+def _mass_matrix(scene):
+    """Consistent P1 mass matrix of the scene's mesh, cached on ``scene._cache["M"]``."""
+    if "M" not in scene._cache:
+        scene._cache["M"] = assemble_mass(scene.mesh)
+    return scene._cache["M"]
+
+
+def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
+    r"""Global estimators: algebraic residual and negative part of the multiplier.
+
+    Parameters
+    ----------
+    scene : Scene
+    u1, u2 : ndarray of shape (N,)
+        Nodal values of the iterate (checked, not otherwise used: the global
+        terms depend on ``lam`` and the residuals only).
+    lam : ndarray of shape (N,)
+        Nodal multiplier, any sign; boundary entries are ignored.
+    r1, r2 : ndarray of shape (N,)
+        Algebraic residuals ``R_i`` of the iterate (:func:`fastmem.linear.residuals`);
+        boundary entries are ignored.
+
+    Returns
+    -------
+    dict of str to float
+        ``eta_glob1``, ``eta_glob2``
+            :math:`C_F \mu_1^{-1/2} \|\rho_1 + \lambda^-\|_\Omega` and
+            :math:`C_F \mu_2^{-1/2} \|\rho_2 - \lambda^-\|_\Omega`, with
+            :math:`\rho_i` the P1 function of nodal values :math:`R_{i,a}/B_a`
+            (0 on the boundary) and :math:`\lambda^-` that of
+            :math:`\max(\lambda_a, 0) - \lambda_a`.
+        ``rho_norm1``, ``rho_norm2``, ``lam_minus_norm``
+            :math:`\|\rho_1\|_\Omega`, :math:`\|\rho_2\|_\Omega`,
+            :math:`\|\lambda^-\|_\Omega`.
+        ``C_F``
+            The Friedrichs constant (:func:`friedrichs_constant`).
+        ``mu1``, ``mu2``
+            The tensions used here: the constants, or for per-triangle
+            tensions their **minimum** over the triangles.
+
+    Notes
+    -----
+    Norms use the consistent P1 mass matrix, assembled once and cached in
+    ``scene._cache["M"]``.  With per-triangle tensions the Friedrichs step
+    reads :math:`(r, e) \le \|r\| C_F \|\nabla e\| \le \|r\| C_F
+    \mu_{\min}^{-1/2} \|\mu^{1/2} \nabla e\|`, so using
+    :math:`\min_K \mu_{i,K}` keeps the bound guaranteed (but may make it
+    pessimistic for strongly varying tensions).
+    """
+    mesh = scene.mesh
+    _nodal(mesh, u1, "u1")
+    _nodal(mesh, u2, "u2")
+    lam = _nodal(mesh, lam, "lam")
+    r1 = _nodal(mesh, r1, "r1")
+    r2 = _nodal(mesh, r2, "r2")
+    interior = ~mesh.boundary_vertex_mask
+    b = mesh.lumped_mass
+    rho1 = np.where(interior, r1 / b, 0.0)
+    rho2 = np.where(interior, r2 / b, 0.0)
+    _, lam_minus = _lambda_parts(mesh, lam)
+    mass = _mass_matrix(scene)
+
+    def norm(x):
+        return math.sqrt(max(float(x @ (mass @ x)), 0.0))
+
+    c_f = friedrichs_constant(mesh)
+    mu1 = float(np.min(scene.mu1))
+    mu2 = float(np.min(scene.mu2))
+    return {
+        "eta_glob1": c_f / math.sqrt(mu1) * norm(rho1 + lam_minus),
+        "eta_glob2": c_f / math.sqrt(mu2) * norm(rho2 - lam_minus),
+        "rho_norm1": norm(rho1),
+        "rho_norm2": norm(rho2),
+        "lam_minus_norm": norm(lam_minus),
+        "C_F": c_f,
+        "mu1": mu1,
+        "mu2": mu2,
+    }
+
+
+_LOCAL_KEYS = ("eta_osc1", "eta_osc2", "eta_nc", "eta_C")
+_GLOBAL_KEYS = ("eta_glob1", "eta_glob2", "rho_norm1", "rho_norm2", "lam_minus_norm", "C_F")
+
+
+def _map(x, name, m) -> np.ndarray:
+    arr = np.asarray(x, dtype=np.float64)
+    if arr.ndim != 1 or (m is not None and arr.shape[0] != m):
+        raise DataError(f"{name} must be a per-triangle array of shape ({m},), got {arr.shape}")
+    if not (np.isfinite(arr).all() and (arr >= 0).all()):
+        raise DataError(f"{name} must be finite and non-negative")
+    return arr
+
+
+def combine(eta_F1, eta_F2, local, glob) -> dict:
+    r"""Combine all estimators into the guaranteed bound and its components.
+
+    Parameters
+    ----------
+    eta_F1, eta_F2 : ndarray of shape (M,)
+        Flux estimators :math:`\eta_{F,K,i} = \|\mu_i^{1/2}\nabla u_{ih} +
+        \mu_i^{-1/2}\sigma_{ih}\|_K` from the flux reconstruction.
+    local : dict
+        Output of :func:`local_terms` (``eta_osc1``, ``eta_osc2``, ``eta_nc``, ``eta_C``).
+    glob : dict
+        Output of :func:`global_terms`.
+
+    Returns
+    -------
+    dict
+        ``totals`` (dict of str to float):
+
+        - ``eta``: the guaranteed bound
+          :math:`(a + \sqrt{a^2 + 4c})/2 + (\sum_K \eta_{nc,K}^2)^{1/2}`;
+        - ``eta_disc``, ``eta_lin``, ``eta_alg``: the components of MATH.md
+          section 6 (:math:`\eta \le \eta_{disc} + \eta_{lin} + \eta_{alg}`);
+        - ``a``, ``c``: the coefficients of :math:`x^2 \le a x + c`;
+        - ``eta_nc`` :math:`= (\sum_K \eta_{nc,K}^2)^{1/2}`, ``eta_glob1``,
+          ``eta_glob2``, ``C_F``;
+        - ``eta_unguaranteed_slides``:
+          :math:`\{\sum_K [\sum_i (\eta_{osc,K,i} + \eta_{F,K,i})^2 + \eta_{C,K}]\}^{1/2}`,
+          the form of the seed slides.  **Not a guaranteed bound**: from
+          :math:`x^2 \le a x + c` it does not follow that
+          :math:`x \le \sqrt{a^2 + c}` (``a = c = 1`` admits
+          :math:`x = (1 + \sqrt 5)/2 \approx 1.618 > \sqrt 2`).  For comparison only.
+
+        ``maps`` (dict of str to ndarray of shape (M,)): ``eta_F1``,
+        ``eta_F2``, ``eta_osc1``, ``eta_osc2``, ``eta_nc``, ``eta_C``.
+
+    Notes
+    -----
+    With :math:`a` and :math:`c` as in the module docstring, the theorem of
+    MATH.md section 5 states :math:`|||u - u_h||| \le \eta` for every
+    :math:`u_h \in X_{gh} \times X_{0h}` and every :math:`\lambda_h \in X_{0h}`
+    of any sign, with no assumption on the iterate.
+
+    Proof sketch.  Let :math:`\delta = (u_{2h} - u_{1h})^+` and
+    :math:`\tilde u = (u_{1h}, u_{2h} - \delta)`, which lies in the convex
+    set :math:`K_g` (:math:`\delta \in H^1_0` since :math:`g \ge 0`).  Then
+    :math:`|||u - u_h||| \le |||u - \tilde u||| + |||\tilde u - u_h|||`, and
+    the last term is :math:`(\sum_K \eta_{nc,K}^2)^{1/2}`.  With
+    :math:`e = u - \tilde u`, the weak form and :math:`\sigma_{ih}` give
+
+    .. math::
+
+        |||e|||^2 = \sum_i (r_i, e_i) - \sum_i (\mu_i \nabla\tilde u_i
+                    + \sigma_{ih}, \nabla e_i) + (\lambda - \hat\lambda, e_1 - e_2)
+
+    with :math:`r_1 = f_1 + \hat\lambda - \operatorname{div}\sigma_{1h}
+    = (f_1 - \Pi f_1) + \rho_1 + \lambda^-` and
+    :math:`r_2 = (f_2 - \Pi f_2) + \rho_2 - \lambda^-`.  The oscillation
+    part is orthogonal to :math:`P_1(K)`: Poincaré on convex :math:`K`
+    (:math:`h_K/\pi`).  The P1 part: Friedrichs on :math:`\Omega`
+    (:math:`C_F`).  The flux part: Cauchy–Schwarz, with
+    :math:`\nabla\tilde u_2 = \nabla u_{2h} - \nabla\delta` giving the
+    :math:`+\eta_{nc,K}`.  The contact part: :math:`(\lambda, u_1 - u_2) = 0`,
+    :math:`-(\lambda, \tilde u_1 - \tilde u_2) \le 0`,
+    :math:`-(\hat\lambda, u_1 - u_2) \le 0`, leaving
+    :math:`(\hat\lambda, (u_{1h} - u_{2h})^+) = c`.  Hence
+    :math:`|||e|||^2 \le a |||e||| + c`, whose positive root
+    :math:`(a + \sqrt{a^2 + 4c})/2` bounds :math:`|||e|||`.
+
+    For per-triangle tensions the global terms use :math:`\min_K \mu_{i,K}`
+    (see :func:`global_terms`).
+    """
+    osc1 = _map(local["eta_osc1"], "eta_osc1", None)
+    m = osc1.shape[0]
+    osc2 = _map(local["eta_osc2"], "eta_osc2", m)
+    nc = _map(local["eta_nc"], "eta_nc", m)
+    eta_c = _map(local["eta_C"], "eta_C", m)
+    f1 = _map(eta_F1, "eta_F1", m)
+    f2 = _map(eta_F2, "eta_F2", m)
+    missing = [k for k in (*_GLOBAL_KEYS, "mu1", "mu2") if k not in glob]
+    if missing:
+        raise DataError(f"glob lacks {missing}; pass the output of global_terms")
+    g1, g2 = float(glob["eta_glob1"]), float(glob["eta_glob2"])
+    c_f, mu1, mu2 = float(glob["C_F"]), float(glob["mu1"]), float(glob["mu2"])
+
+    d1 = osc1 + f1  # membrane 1 per triangle
+    d2 = osc2 + f2  # membrane 2 per triangle, without the non-conformity
+    sum_d1 = float(d1 @ d1)
+    sum_d2 = float(d2 @ d2)
+    d2nc = d2 + nc
+    nc_total = math.sqrt(float(nc @ nc))
+    a = math.sqrt(sum_d1 + float(d2nc @ d2nc)) + math.hypot(g1, g2)
+    c = float(eta_c.sum())
+    root = 0.5 * (a + math.sqrt(a * a + 4.0 * c))  # positive root of x^2 = a x + c
+    eta = root + nc_total
+
+    eta_alg = c_f * math.sqrt(glob["rho_norm1"] ** 2 / mu1 + glob["rho_norm2"] ** 2 / mu2)
+    eta_lin = c_f * math.sqrt(1.0 / mu1 + 1.0 / mu2) * glob["lam_minus_norm"] + 2.0 * nc_total
+    eta_disc = math.sqrt(sum_d1 + sum_d2) + math.sqrt(c)
+    slides = math.sqrt(sum_d1 + sum_d2 + c)
+
+    totals = {
+        "eta": eta,
+        "eta_disc": eta_disc,
+        "eta_lin": eta_lin,
+        "eta_alg": eta_alg,
+        "a": a,
+        "c": c,
+        "eta_nc": nc_total,
+        "eta_glob1": g1,
+        "eta_glob2": g2,
+        "C_F": c_f,
+        "eta_unguaranteed_slides": slides,
+    }
+    maps = {
+        "eta_F1": f1,
+        "eta_F2": f2,
+        "eta_osc1": osc1,
+        "eta_osc2": osc2,
+        "eta_nc": nc,
+        "eta_C": eta_c,
+    }
+    logger.debug(
+        "estimators: eta=%.3e disc=%.3e lin=%.3e alg=%.3e (a=%.3e c=%.3e)",
+        eta,
+        eta_disc,
+        eta_lin,
+        eta_alg,
+        a,
+        c,
+    )
+    return {"totals": totals, "maps": maps}
