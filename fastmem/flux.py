@@ -29,6 +29,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .assembly import csr_structure, evaluate_callable
@@ -191,5 +192,7 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
         moments[1],
         np.ascontiguousarray(bary),
         np.ascontiguousarray(w),
+        int(np.diff(mesh.patch_ptr).max()),
+        numba.get_num_threads(),
     )
     return Fluxes(mesh=mesh, coef=coef)

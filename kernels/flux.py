@@ -28,7 +28,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import jit, pjit
-from .rt1 import rt1_local
+from .rt1 import SCRATCH_SIZE, rt1_local
 
 __all__ = ["color_vertices", "flux_estimators", "reconstruct_colored"]
 
@@ -85,14 +85,17 @@ def _patch_solve(
     bary,
     weights,
     out,
+    iwork,
+    fwork,
 ):
     pstart = patch_ptr[a]
     nt = patch_ptr[a + 1] - pstart
     interior = not boundary[a]
-    # --- patch edges that carry dofs
-    edge_ids = np.empty(3 * nt, dtype=np.int64)
+    # --- workspace views (no allocation per patch)
+    edge_ids = iwork[0 : 3 * nt]
+    loc2patch = iwork[3 * nt : 11 * nt].reshape((nt, 8))
+    loc2patch[:, :] = -1
     ne = 0
-    loc2patch = np.full((nt, 8), -1, dtype=np.int64)
     for p in range(nt):
         t = patch_triangles[pstart + p]
         i = patch_local[pstart + p]
@@ -117,14 +120,23 @@ def _patch_solve(
         loc2patch[p, 6] = 2 * ne + 2 * p
         loc2patch[p, 7] = 2 * ne + 2 * p + 1
     n_tot = n_sig + 3 * nt + (1 if interior else 0)
-    mat = np.zeros((n_tot, n_tot))
-    rhs = np.zeros((n_tot, 2))
-    coefs = np.empty((nt, 8, 8))
-    pts = np.empty((3, 2))
-    mass = np.empty((8, 8))
-    div = np.empty((3, 8))
-    tau = np.empty((3, 2, 8))
-    work = np.empty((8, 2))
+    o = 0
+    mat = fwork[o : o + n_tot * n_tot].reshape((n_tot, n_tot))
+    o += n_tot * n_tot
+    rhs = fwork[o : o + 2 * n_tot].reshape((n_tot, 2))
+    o += 2 * n_tot
+    mat[:, :] = 0.0
+    rhs[:, :] = 0.0
+    coefs = fwork[o : o + 64 * nt].reshape((nt, 8, 8))
+    o += 64 * nt
+    pts = fwork[o : o + 6].reshape((3, 2))
+    mass = fwork[o + 6 : o + 70].reshape((8, 8))
+    div = fwork[o + 70 : o + 94].reshape((3, 8))
+    tau = fwork[o + 94 : o + 142].reshape((3, 2, 8))
+    work = fwork[o + 142 : o + 158].reshape((8, 2))
+    gx = fwork[o + 158 : o + 161]
+    gy = fwork[o + 161 : o + 164]
+    scratch = fwork[o + 164 : o + 164 + SCRATCH_SIZE]
     lam_a = 0.0 if not interior else lam[a]
     r1a = 0.0 if not interior else rho1[a]
     r2a = 0.0 if not interior else rho2[a]
@@ -135,10 +147,10 @@ def _patch_solve(
         for v in range(3):
             pts[v, 0] = vertices[tri[v], 0]
             pts[v, 1] = vertices[tri[v], 1]
-        area = rt1_local(pts, tri, diameters[t], bary, weights, coefs[p], mass, div, tau, work)
+        area = rt1_local(
+            pts, tri, diameters[t], bary, weights, coefs[p], mass, div, tau, work, scratch
+        )
         # gradients of the hat functions: rot(edge opposite) / (2|K|)
-        gx = np.empty(3)
-        gy = np.empty(3)
         for v in range(3):
             ia = (v + 1) % 3
             ib = (v + 2) % 3
@@ -229,6 +241,8 @@ def reconstruct_colored(
     load2,
     bary,
     weights,
+    max_nt,
+    n_chunks_hint,
 ):
     """Equilibrated fluxes of both membranes, canonical RT1 coefficients (2, M, 8).
 
@@ -252,6 +266,11 @@ def reconstruct_colored(
         Load moments ``int_K f lambda_i lambda_j`` for non-constant data.
     bary, weights : float64
         Quadrature rule exact for degree 4.
+    max_nt : int
+        Largest number of triangles in a patch (sizes the workspaces).
+    n_chunks_hint : int
+        Number of threads; each colour class is cut into 8 chunks per thread,
+        each with its own preallocated workspace.
 
     Threading: parallel over the vertices of one colour class at a time; a
     patch writes only the rows of its own triangles, which no other vertex of
@@ -259,36 +278,47 @@ def reconstruct_colored(
     """
     m = triangles.shape[0]
     out = np.zeros((2, m, 8))
+    n_max = 9 * max_nt + 3  # bound on the patch system size (<= 2 nt + 1 dof edges)
+    f_size = n_max * n_max + 2 * n_max + 64 * max_nt + 164 + SCRATCH_SIZE
     for c in range(color_ptr.shape[0] - 1):
         lo = color_ptr[c]
-        hi = color_ptr[c + 1]
-        for k in prange(hi - lo):
-            _patch_solve(
-                order[lo + k],
-                vertices,
-                triangles,
-                diameters,
-                tri_edges,
-                edge_tris,
-                boundary,
-                patch_ptr,
-                patch_triangles,
-                patch_local,
-                u1,
-                u2,
-                lam,
-                rho1,
-                rho2,
-                mu1,
-                mu2,
-                f1c,
-                f2c,
-                load1,
-                load2,
-                bary,
-                weights,
-                out,
-            )
+        count = color_ptr[c + 1] - lo
+        n_chunks = min(count, 8 * n_chunks_hint)
+        for ch in prange(n_chunks):
+            # one workspace per chunk: no allocation inside the patch loop
+            iwork = np.empty(11 * max_nt, dtype=np.int64)
+            fwork = np.empty(f_size)
+            k0 = lo + (count * ch) // n_chunks
+            k1 = lo + (count * (ch + 1)) // n_chunks
+            for k in range(k0, k1):
+                _patch_solve(
+                    order[k],
+                    vertices,
+                    triangles,
+                    diameters,
+                    tri_edges,
+                    edge_tris,
+                    boundary,
+                    patch_ptr,
+                    patch_triangles,
+                    patch_local,
+                    u1,
+                    u2,
+                    lam,
+                    rho1,
+                    rho2,
+                    mu1,
+                    mu2,
+                    f1c,
+                    f2c,
+                    load1,
+                    load2,
+                    bary,
+                    weights,
+                    out,
+                    iwork,
+                    fwork,
+                )
     return out
 
 

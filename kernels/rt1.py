@@ -21,11 +21,13 @@ normal to the right of lo -> hi); the two interior dofs are
 functionals, so equal dof values give equal (linear) normal traces.
 """
 
-import numpy as np
 
 from ._jit import jit
 
-__all__ = ["monomial_values", "rt1_local"]
+__all__ = ["SCRATCH_SIZE", "monomial_values", "rt1_local"]
+
+#: Length of the scratch array :func:`rt1_local` needs.
+SCRATCH_SIZE = 264
 
 
 @jit
@@ -45,7 +47,7 @@ def monomial_values(xi, eta, out):
 
 
 @jit
-def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, work):
+def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, work, scratch):
     """Local RT1 quantities of one triangle in its dof basis.
 
     Parameters
@@ -68,6 +70,8 @@ def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, wo
         Out: ``int_K lambda_q phi_j`` (vector), for the flux target terms.
     work : float64 (8, 2)
         Scratch.
+    scratch : float64 (SCRATCH_SIZE,)
+        Scratch (no allocation happens inside this function).
 
     Returns
     -------
@@ -79,7 +83,12 @@ def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, wo
     area = 0.5 * ((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
     xc = (x0 + x1 + x2) / 3.0
     yc = (y0 + y1 + y2) / 3.0
-    g = np.zeros((8, 8))
+    g = scratch[0:64].reshape((8, 8))
+    mass_m = scratch[64:128].reshape((8, 8))
+    div_m = scratch[128:152].reshape((3, 8))
+    tau_m = scratch[152:200].reshape((3, 2, 8))
+    tmp = scratch[200:264].reshape((8, 8))
+    scratch[:264] = 0.0
     # edge dofs
     for k in range(3):
         ia = (k + 1) % 3
@@ -96,9 +105,6 @@ def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, wo
             for m in range(8):
                 g[2 * k + end, m] = work[m, 0] * ty - work[m, 1] * tx
     # interior dofs and all quadrature-based integrals
-    mass_m = np.zeros((8, 8))
-    div_m = np.zeros((3, 8))
-    tau_m = np.zeros((3, 2, 8))
     for q in range(weights.shape[0]):
         b0, b1, b2 = bary[q, 0], bary[q, 1], bary[q, 2]
         xq = b0 * x0 + b1 * x1 + b2 * x2
@@ -126,13 +132,69 @@ def rt1_local(p, tri, h, bary, weights, coef_out, mass_out, div_out, tau_out, wo
     for m in range(8):
         for n in range(m):
             mass_m[m, n] = mass_m[n, m]
-    c = np.linalg.inv(g)
-    coef_out[:, :] = c
-    # transform to the dof basis: M = C^T Mm C, D = Dm C, T = Tm C
-    tmp = mass_m @ c
-    mass_out[:, :] = c.T @ tmp
-    div_out[:, :] = div_m @ c
-    for qq in range(3):
-        tau_out[qq, 0, :] = tau_m[qq, 0, :] @ c
-        tau_out[qq, 1, :] = tau_m[qq, 1, :] @ c
+    _invert8(g, coef_out)
+    c = coef_out
+    # transform to the dof basis: M = C^T Mm C, D = Dm C, T = Tm C (explicit loops:
+    # BLAS call overhead dominates at this size)
+    for m in range(8):
+        for k in range(8):
+            mk = mass_m[m, k]
+            if mk != 0.0:
+                for j in range(8):
+                    tmp[m, j] += mk * c[k, j]
+    for i in range(8):
+        for j in range(i, 8):
+            s = 0.0
+            for m in range(8):
+                s += c[m, i] * tmp[m, j]
+            mass_out[i, j] = s
+            mass_out[j, i] = s
+    for j in range(8):
+        for qq in range(3):
+            sd = 0.0
+            s0 = 0.0
+            s1 = 0.0
+            for m in range(8):
+                cmj = c[m, j]
+                sd += div_m[qq, m] * cmj
+                s0 += tau_m[qq, 0, m] * cmj
+                s1 += tau_m[qq, 1, m] * cmj
+            div_out[qq, j] = sd
+            tau_out[qq, 0, j] = s0
+            tau_out[qq, 1, j] = s1
     return area
+
+
+@jit
+def _invert8(a, out):
+    """Inverse of a small dense matrix by Gauss-Jordan elimination with partial pivoting.
+
+    ``a`` is overwritten; ``out`` receives the inverse.
+    """
+    n = a.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 1.0 if i == j else 0.0
+    for col in range(n):
+        piv = col
+        best = abs(a[col, col])
+        for r in range(col + 1, n):
+            v = abs(a[r, col])
+            if v > best:
+                best = v
+                piv = r
+        if piv != col:
+            for j in range(n):
+                a[col, j], a[piv, j] = a[piv, j], a[col, j]
+                out[col, j], out[piv, j] = out[piv, j], out[col, j]
+        inv_p = 1.0 / a[col, col]
+        for j in range(n):
+            a[col, j] *= inv_p
+            out[col, j] *= inv_p
+        for r in range(n):
+            if r != col:
+                f = a[r, col]
+                if f != 0.0:
+                    for j in range(n):
+                        a[r, j] -= f * a[col, j]
+                        out[r, j] -= f * out[col, j]
