@@ -18,7 +18,7 @@ more than ``2**16`` elements are chunked and compressed losslessly (gzip level
 are stored contiguously, where compression gains nothing.
 
 Writes are atomic: the archive is written to a temporary file in the target
-folder (named ``.{name}.tmp-XXXXXXXX``), flushed to disk and renamed onto the
+folder (named ``.{name}.tmp-<random suffix>``), flushed to disk and renamed onto the
 final name.  If anything fails, the temporary file is removed and an archive
 already present under the final name is left untouched.
 

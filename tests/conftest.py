@@ -1,9 +1,6 @@
-import warnings
-
 import numpy as np
 import pytest
-
-import fastmem as fm
+from meshes import circle_mesh
 
 
 @pytest.fixture
@@ -19,8 +16,4 @@ def rng(seed):
 @pytest.fixture(scope="module")
 def unstructured_mesh():
     """An unstructured mesh of the unit disk from scikit-fem (independent generator)."""
-    skfem = pytest.importorskip("skfem")
-    m = skfem.MeshTri.init_circle(3)
-    with warnings.catch_warnings():  # scikit-fem's circle has clockwise triangles
-        warnings.simplefilter("ignore", fm.errors.MeshWarning)
-        return fm.Mesh(m.p.T, m.t.T)
+    return circle_mesh(3)

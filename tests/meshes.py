@@ -1,5 +1,7 @@
 """Test meshes shared by several test modules."""
 
+import warnings
+
 import numpy as np
 
 import fastmem as fm
@@ -26,3 +28,14 @@ SYMMETRIES = [
     lambda x, y: (y, -x),
     lambda x, y: (-y, -x),
 ]
+
+
+def circle_mesh(refinements):
+    """Unstructured mesh of the unit disk from scikit-fem (an independent generator)."""
+    import pytest
+
+    skfem = pytest.importorskip("skfem")
+    m = skfem.MeshTri.init_circle(refinements)
+    with warnings.catch_warnings():  # scikit-fem's circle has clockwise triangles
+        warnings.simplefilter("ignore", fm.errors.MeshWarning)
+        return fm.Mesh(m.p.T, m.t.T)

@@ -7,12 +7,11 @@ both must be H(div)-conforming and equilibrated.
 """
 
 import functools
-import warnings
 
 import naive_flux
 import numpy as np
 import pytest
-from meshes import perturbed_square
+from meshes import circle_mesh, perturbed_square
 
 import fastmem as fm
 import fastmem.flux as flux
@@ -23,11 +22,7 @@ from fastmem.quadrature import triangle_rule
 
 
 def _circle():
-    skfem = pytest.importorskip("skfem")
-    m = skfem.MeshTri.init_circle(2)
-    with warnings.catch_warnings():  # scikit-fem's circle has clockwise triangles
-        warnings.simplefilter("ignore", fm.errors.MeshWarning)
-        return fm.Mesh(m.p.T, m.t.T)
+    return circle_mesh(2)
 
 
 MESH_BUILDERS = {
