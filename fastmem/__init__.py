@@ -9,18 +9,26 @@ Quick start::
     result.save("run.h5")
 """
 
+import os
 from importlib.metadata import PackageNotFoundError, version
 
-from . import errors
-from .archive import load
-from .bound import estimate
-from .config import get_threads, set_threads
-from .errors import FastmemError
-from .manufactured import Manufactured
-from .mesh import Mesh
-from .result import Estimate, Result
-from .scene import Scene
-from .solver import solve
+# OpenMP workers (Numba's "omp" threading layer) that spin while idle turn
+# every short parallel kernel into a 5-15 ms wait as soon as another process
+# or a BLAS thread holds a core (measured on a 2-core machine: 15 ms vs 40 us
+# for an O(M) kernel on 131k triangles).  Passive waiting costs ~20 us per
+# call at most.  Set before Numba starts its pool; an explicit user setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from . import errors  # noqa: E402
+from .archive import load  # noqa: E402
+from .bound import estimate  # noqa: E402
+from .config import get_threads, set_threads  # noqa: E402
+from .errors import FastmemError  # noqa: E402
+from .manufactured import Manufactured  # noqa: E402
+from .mesh import Mesh  # noqa: E402
+from .result import Estimate, Result  # noqa: E402
+from .scene import Scene  # noqa: E402
+from .solver import solve  # noqa: E402
 
 try:
     __version__ = version("fastmem")

@@ -21,7 +21,7 @@ from .quadrature import quadrature_points, triangle_rule
 from .result import Estimate, check_triple
 from .scene import Scene
 
-__all__ = ["estimate", "flux_terms"]
+__all__ = ["estimate", "evaluate", "flux_terms"]
 
 logger = logging.getLogger(__name__)
 
@@ -138,14 +138,27 @@ def estimate(scene: Scene, u1, u2, lam, r1=None, r2=None) -> Estimate:
             )
     lam = lam.copy()
     lam[bnd] = 0.0  # lambda_h lives in X_0h: boundary values are ignored
-    t0 = time.perf_counter()
     if r1 is None or r2 is None:
         r1, r2 = residuals(scene, u1, u2, lam)
+    return evaluate(scene, u1, u2, lam, r1, r2)
+
+
+def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
+    """Compute the bound of a checked triple (no validation): the work of :func:`estimate`.
+
+    ``u1 = g``, ``u2 = 0`` and ``lam = 0`` on the boundary are assumed.  The
+    flux-free terms ``local`` (:func:`~fastmem.estimators.local_terms`) and
+    ``glob`` (:func:`~fastmem.estimators.global_terms`) may be passed when the
+    caller already has them for this triple (the adaptive solver does).
+    """
+    t0 = time.perf_counter()
     fluxes = reconstruct(scene, u1, u2, lam, r1, r2)
     t1 = time.perf_counter()
     eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
-    local = local_terms(scene, u1, u2, lam)
-    glob = global_terms(scene, u1, u2, lam, r1, r2)
+    if local is None:
+        local = local_terms(scene, u1, u2, lam)
+    if glob is None:
+        glob = global_terms(scene, u1, u2, lam, r1, r2)
     out = combine(eta_f1, eta_f2, local, glob)
     totals, maps = out if isinstance(out, tuple) else (out["totals"], out["maps"])
     maps = {"eta_F1": eta_f1, "eta_F2": eta_f2, **maps}

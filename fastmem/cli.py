@@ -1,10 +1,12 @@
-"""Command line: ``fastmem run``, ``fastmem info FILE.h5``, ``fastmem export FILE.h5 OUT``.
+"""Command line: ``fastmem run``, ``info FILE.h5``, ``export FILE.h5 OUT``, ``plot FILE.h5``.
 
 ``fastmem run`` with no option solves the default scene (MATH.md section 8):
 the square (-1, 1)^2, mu1 = mu2 = 1, f1 = -1, f2 = 1, g = 0.1, on a structured
-mesh, prints one monitor line per Newton step and a summary, and writes an
-HDF5 archive.  Errors in the input are reported in one line on stderr (exit
-status 2), without a traceback.
+mesh, with the adaptive inexact Newton-min (nested iteration over coarser
+meshes), prints one monitor line per estimator evaluation (or per Newton step
+for ``--method exact``) and a summary, and writes an HDF5 archive.  Errors in
+the input are reported in one line on stderr (exit status 2), without a
+traceback.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import logging
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 __all__ = ["main"]
 
@@ -59,7 +63,23 @@ def _build_parser() -> argparse.ArgumentParser:
     r.add_argument("--f1", type=float, default=-1.0, help="constant load f1 (default -1)")
     r.add_argument("--f2", type=float, default=1.0, help="constant load f2 (default 1)")
     r.add_argument("--g", type=float, default=0.1, help="boundary value of u1 (default 0.1)")
-    r.add_argument("--method", default="exact", help="solver method (default exact)")
+    r.add_argument(
+        "--method",
+        default=None,
+        help="inexact: AMG-CG stopped by the estimators (default); exact-amg: AMG-CG to "
+        "round-off (default with --no-estimate); exact: sparse direct solves (small meshes)",
+    )
+    r.add_argument(
+        "--gamma-alg", type=float, default=0.1, help="inner stopping parameter (default 0.1)"
+    )
+    r.add_argument(
+        "--gamma-lin", type=float, default=0.1, help="outer stopping parameter (default 0.1)"
+    )
+    r.add_argument(
+        "--no-nested",
+        action="store_true",
+        help="start on the given mesh (no nested iteration over coarser meshes)",
+    )
     r.add_argument(
         "--path",
         default="auto",
@@ -82,7 +102,8 @@ def _build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--no-estimate",
         action="store_true",
-        help="skip the a posteriori error bound (no flux reconstruction)",
+        help="skip the a posteriori error bound (no flux reconstruction; the default method "
+        "becomes exact-amg, since inexact stops by the estimators)",
     )
     r.add_argument("-q", "--quiet", action="store_true", help="no per-step monitor")
 
@@ -93,11 +114,21 @@ def _build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="export a result archive to VTU or XDMF")
     e.add_argument("file", type=Path)
     e.add_argument("out", type=Path)
+
+    from .plot import add_parser as _add_plot
+
+    _add_plot(sub)
     return p
 
 
 class _Monitor:
+    """Live table of the exact solver: one line per Newton step."""
+
     header = f"{'k':>4} {'|A|':>9} {'changed':>9} {'|min(gap,lam)|':>15} {'|R|':>11} {'sec':>8}"
+    line = (
+        "{k:>4d} {n_active:>9d} {n_changed:>9d} {comp_norm:>15.3e} {res_norm:>11.3e} "
+        "{seconds:>8.3f}"
+    )
 
     def __init__(self, enabled: bool):
         self.enabled = enabled
@@ -107,10 +138,20 @@ class _Monitor:
 
     def __call__(self, row: dict) -> None:
         if self.enabled:
-            _out(
-                f"{row['k']:>4d} {row['n_active']:>9d} {row['n_changed']:>9d} "
-                f"{row['comp_norm']:>15.3e} {row['res_norm']:>11.3e} {row['seconds']:>8.3f}"
-            )
+            _out(self.line.format(**row))
+
+
+class _AdaptiveMonitor(_Monitor):
+    """Live table of the AMG methods: one line per estimator evaluation."""
+
+    header = (
+        f"{'lev':>3} {'k':>3} {'inner':>5} {'total':>6} {'|A|':>8} {'eta_disc':>10} "
+        f"{'eta_lin':>10} {'eta_alg':>10} {'eta':>10} {'sec':>7}"
+    )
+    line = (
+        "{level:>3d} {k:>3d} {inner:>5d} {inner_total:>6d} {n_active:>8d} {eta_disc:>10.3e} "
+        "{eta_lin:>10.3e} {eta_alg:>10.3e} {eta:>10.3e} {seconds:>7.2f}"
+    )
 
 
 def _cmd_run(args) -> int:
@@ -129,6 +170,16 @@ def _cmd_run(args) -> int:
         n = DEFAULT_N if args.n is None else args.n
         mesh = Mesh.square(n)
         source = f"square n={n}"
+    method = args.method
+    if method is None:
+        method = "exact-amg" if args.no_estimate else "inexact"
+    elif method == "inexact" and args.no_estimate:
+        from .errors import ParameterError
+
+        raise ParameterError(
+            "--no-estimate cannot be combined with --method inexact: its stopping test needs "
+            "the estimator (use --method exact-amg or exact)"
+        )
     if args.refine < 0:
         from .errors import ParameterError
 
@@ -140,34 +191,47 @@ def _cmd_run(args) -> int:
     _out(f"fastmem run: {source}, {mesh.n_vertices} vertices, {mesh.n_triangles} triangles")
     _out(
         f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), g = {args.g:g}, "
-        f"method = {args.method}"
+        f"method = {method}"
     )
     result = solve(
         scene,
-        method=args.method,
+        method=method,
         path=args.path,
         max_newton=args.max_newton,
-        monitor=_Monitor(not args.quiet),
+        monitor=(_Monitor if method == "exact" else _AdaptiveMonitor)(not args.quiet),
         estimate=not args.no_estimate,
+        gamma_alg=args.gamma_alg,
+        gamma_lin=args.gamma_lin,
+        nested=False if args.no_nested else "auto",
     )
     result.timings["mesh"] = t_mesh
-    status = "converged" if result.converged else "NOT CONVERGED (step limit reached)"
+    reason = result.parameters["solver"].get("stop_reason", "step limit reached")
+    status = "converged" if result.converged else f"NOT CONVERGED ({reason or 'criteria not met'})"
     _out()
     _out(f"  status            {status}")
     _out(f"  linear path       {result.path}")
-    _out(f"  Newton steps      {result.n_newton}")
+    levels = result.parameters["solver"].get("levels")
+    if levels:
+        steps = ", ".join(str(lv["newton"]) for lv in levels)
+        inner = sum(lv["inner"] for lv in levels)
+        _out(f"  Newton steps      {result.n_newton} (per level: {steps})")
+        _out(f"  CG iterations     {inner} (all levels)")
+    else:
+        _out(f"  Newton steps      {result.n_newton}")
     _out(
         f"  contact fraction  {result.contact_fraction:.4f}  "
         f"({int(result.active.sum())} contact vertices)"
     )
-    _out(f"  final |R|         {result.history['res_norm'][-1]:.3e}")
+    r_norm = float(np.sqrt(result.r1 @ result.r1 + result.r2 @ result.r2))
+    _out(f"  final |R|         {r_norm:.3e}")
     if result.estimate is not None:
         tot = result.estimate.totals
         _out(f"  error bound eta   {tot['eta']:.4e}   (guaranteed: |||u - u_h||| <= eta)")
         _out(f"    eta_disc        {tot['eta_disc']:.4e}")
         _out(f"    eta_lin         {tot['eta_lin']:.4e}")
         _out(f"    eta_alg         {tot['eta_alg']:.4e}")
-        _out(f"  estimate seconds  {result.timings['estimate']:.3f}")
+        if "estimate" in result.timings:
+            _out(f"  estimate seconds  {result.timings['estimate']:.3f}")
     _out(f"  seconds           {result.timings['total']:.3f} solve, {t_mesh:.3f} mesh")
     if not args.no_save:
         result.save(args.output)
@@ -223,7 +287,8 @@ def main(argv=None) -> int:
     args = _build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="fastmem: %(levelname)s: %(message)s")
     try:
-        return {"run": _cmd_run, "info": _cmd_info, "export": _cmd_export}[args.command](args)
+        commands = {"run": _cmd_run, "info": _cmd_info, "export": _cmd_export}
+        return commands[args.command](args) if args.command in commands else args.func(args)
     except FastmemError as exc:
         sys.stderr.write(f"fastmem: error: {exc}\n")
         return 2

@@ -149,6 +149,16 @@ def _oscillation(scene, i) -> np.ndarray:
     m = mesh.n_triangles
     if scene.data_kind(name) != "callable":  # constant or P1 data: f = Pi_K f exactly
         return np.zeros(m)
+    key = f"osc{i}"  # depends on the data only: computed once per scene
+    if key not in scene._cache:
+        scene._cache[key] = _oscillation_callable(scene, i)
+    return scene._cache[key]
+
+
+def _oscillation_callable(scene, i) -> np.ndarray:
+    name = f"f{i}"
+    mesh = scene.mesh
+    m = mesh.n_triangles
     f = getattr(scene, name)
     mu = scene.mu1 if i == 1 else scene.mu2
     bary, weights = triangle_rule(scene.load_degree)

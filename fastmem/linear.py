@@ -118,7 +118,6 @@ class GeneralStep(_Base):
 
     def solve(self, active):
         """Solve the step for the active set ``active`` (bool, interior vertices)."""
-        ni = self.interior.size
         p = self.prolongation(active)
         rhs = p.T @ np.concatenate([self.rhs1, self.rhs2])
         if not active.any() and self._lu_empty is not None:
@@ -128,7 +127,11 @@ class GeneralStep(_Base):
             self.factorizations += 1
             if not active.any():
                 self._lu_empty = lu
-        x = p @ lu.solve(rhs)
+        return self.triple(active, p @ lu.solve(rhs))
+
+    def triple(self, active, x):
+        """Full triple from interior values ``x = (u1_I, u2_I)`` (u2 = u1 on the active set)."""
+        ni = self.interior.size
         u1_i, u2_i = x[:ni], x[ni:]
         lam_i = np.zeros(ni)
         # (A1 u1)_a - F1_a = (A1_II u1_I)_a - rhs1_a, since rhs1 = F1_I - A1_IB g_B
@@ -161,10 +164,25 @@ class DecoupledStep(_Base):
         # s = mu1 g on the boundary; w = g on the boundary.
         self.fw = f1 / mu1 - f2 / mu2
         self.rhs_w = self.fw[ii] - lift[ii]
-        self._lu_all = _factor(self.a_ii)
-        self.factorizations = 1
-        s_i = self._lu_all.solve((f1 + f2)[ii] - mu1 * lift[ii])
-        self.s = self._full(s_i, mu1 * self.g_full)
+        self.rhs_s = (f1 + f2)[ii] - mu1 * lift[ii]
+        self.s_boundary = mu1 * self.g_full
+        self._lu = None
+        self._s = None
+
+    @property
+    def _lu_all(self):
+        """SuperLU factors of the interior Laplacian, computed on first use."""
+        if self._lu is None:
+            self._lu = _factor(self.a_ii)
+            self.factorizations += 1
+        return self._lu
+
+    @property
+    def s(self):
+        """The sum ``s = mu1 u1 + mu2 u2`` on all vertices (exact solve, first use)."""
+        if self._s is None:
+            self._s = self._full(self._lu_all.solve(self.rhs_s), self.s_boundary)
+        return self._s
 
     def solve(self, active):
         """Solve the step for the active set ``active`` (bool, interior vertices)."""
@@ -177,14 +195,18 @@ class DecoupledStep(_Base):
                 self.factorizations += 1
         else:
             w_i[:] = self._lu_all.solve(self.rhs_w)
+        return self.triple(active, self.s, w_i)
+
+    def triple(self, active, s, w_i):
+        """Full triple from the sum ``s`` (all vertices) and the interior gap ``w_i``."""
         lam_i = np.zeros_like(w_i)
         lam_i[active] = ((self.a_ii @ w_i)[active] - self.rhs_w[active]) / (
             self.kappa * self.b_int[active]
         )
         w = self._full(w_i, self.g_full)
         m = self.mu1 + self.mu2
-        u1 = (self.s + self.mu2 * w) / m
-        u2 = (self.s - self.mu1 * w) / m
+        u1 = (s + self.mu2 * w) / m
+        u2 = (s - self.mu1 * w) / m
         u1[self.boundary] = self.g_full[self.boundary]
         u2[self.boundary] = 0.0
         return u1, u2, self._full(lam_i)

@@ -137,6 +137,7 @@ class Mesh:
         t = _as_triangles(triangles, v.shape[0])
         self._cache: dict = {}
         self.parent: Mesh | None = None
+        self._coarse_recipe = None  # (generator name, args) of a coarser version, if any
 
         # Repeated vertex inside one triangle.
         rep = (t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])
@@ -445,7 +446,10 @@ class Mesh:
         t_slash = np.stack([np.stack([a, b, c], 1), np.stack([a, c, d], 1)], axis=1)
         t_back = np.stack([np.stack([a, b, d], 1), np.stack([b, c, d], 1)], axis=1)
         tris = np.where(slash[:, None, None], t_slash, t_back).reshape(-1, 3)
-        return cls(vertices, tris, validate=False)
+        mesh = cls(vertices, tris, validate=False)
+        if nx % 2 == 0 and ny % 2 == 0 and min(nx, ny) >= 4:
+            mesh._coarse_recipe = ("rectangle", (nx // 2, ny // 2, bounds, diagonal))
+        return mesh
 
     @classmethod
     def square(cls, n: int = 64, diagonal: str = "symmetric") -> Mesh:
@@ -469,7 +473,10 @@ class Mesh:
         sq = cls.square(n)
         cen = sq.vertices[sq.triangles].mean(axis=1)
         keep = ~((cen[:, 0] > 0) & (cen[:, 1] < 0))
-        return cls._compact(sq.vertices, sq.triangles[keep], validate=False)
+        mesh = cls._compact(sq.vertices, sq.triangles[keep], validate=False)
+        if n % 4 == 0 and n >= 8:
+            mesh._coarse_recipe = ("lshape", (n // 2,))
+        return mesh
 
     @classmethod
     def _compact(cls, vertices, triangles, **kwargs) -> Mesh:
@@ -477,6 +484,21 @@ class Mesh:
         used[np.asarray(triangles).ravel()] = True
         new_index = np.cumsum(used) - 1
         return cls(np.asarray(vertices)[used], new_index[triangles], **kwargs)
+
+    def coarser(self) -> Mesh | None:
+        """Return a coarser mesh of the same domain, for nested iteration, or None.
+
+        The ``parent`` of a refined mesh; for the structured generators with
+        an even number of cells (at least 4 per side), the same generator
+        with half as many cells.  Other meshes have none.
+        """
+        if self.parent is not None:
+            return self.parent
+        recipe = self._coarse_recipe
+        if recipe is None:
+            return None
+        name, args = recipe
+        return getattr(type(self), name)(*args)
 
     def refine(self) -> Mesh:
         """Uniform (red) refinement: every triangle split into four by its edge midpoints.

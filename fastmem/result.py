@@ -91,7 +91,11 @@ class Result:
         Solver method (``"exact"``, ...) and linear-step path (``"general"`` or
         ``"decoupled"``).
     estimate : Estimate or None
-        The a posteriori estimate, when one was asked for.
+        The a posteriori estimate, when one was asked for (always for
+        ``method="inexact"``).
+    iterates : list of tuple or None
+        With ``solve(..., keep_iterates=True)``: the triple ``(u1, u2, lam)``
+        of every history row (not archived).
     """
 
     mesh: object
@@ -109,6 +113,7 @@ class Result:
     method: str = ""
     path: str = ""
     estimate: Estimate | None = None
+    iterates: list | None = None
 
     @property
     def gap(self) -> np.ndarray:

@@ -27,9 +27,12 @@ import time
 
 import numpy as np
 
+from .adaptive import ADAPTIVE_HISTORY_COLUMNS, AdaptiveOptions, newton_amg
+from .amg import check_amg_options
 from .config import blas_limits, get_threads
 from .errors import CyclingError, InputTypeError, ParameterError
 from .linear import make_step, residuals
+from .nested import coarse_scenes, prolong_triple
 from .result import Result, check_triple
 from .scene import Scene
 
@@ -37,7 +40,7 @@ __all__ = ["HISTORY_COLUMNS", "METHODS", "complementarity", "solve"]
 
 logger = logging.getLogger(__name__)
 
-METHODS = ("exact",)
+METHODS = ("inexact", "exact-amg", "exact")
 
 #: Relative residual ||R|| / ||(F1, F2, B lam)|| expected of an exact solve at convergence.
 ROUNDOFF_TOL = 1e-9
@@ -61,9 +64,33 @@ def _check_initial(initial, mesh):
     return check_triple(mesh, initial, prefix="initial ")
 
 
+_FLOAT_COLUMNS = ("comp_norm", "res_norm", "seconds")
+
+
+def _history_arrays(rows, columns):
+    """History lists to arrays: float64 for norms, estimators and times, int64 otherwise."""
+    return {
+        name: np.asarray(
+            rows[name],
+            dtype=np.float64 if name in _FLOAT_COLUMNS or name.startswith("eta") else np.int64,
+        )
+        for name in columns
+    }
+
+
+def _check_positive(name, value, integer=False, allow_zero=False):
+    ok_type = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+    if isinstance(value, bool) or not isinstance(value, ok_type):
+        kind = "an integer" if integer else "a number"
+        raise ParameterError(f"{name} must be {kind}, got {value!r}")
+    if not (np.isfinite(value) and (value >= 0 if allow_zero else value > 0)):
+        bound = ">= 0" if allow_zero else "positive"
+        raise ParameterError(f"{name} must be {bound}, got {value!r}")
+
+
 def solve(
     scene: Scene,
-    method: str = "exact",
+    method: str = "inexact",
     path: str = "auto",
     *,
     max_newton: int = 1000,
@@ -71,6 +98,15 @@ def solve(
     monitor=None,
     blas_threads: int | None = None,
     estimate: bool = False,
+    gamma_alg: float = 0.1,
+    gamma_lin: float = 0.1,
+    max_inner: int = 500,
+    check_every: int = 1,
+    amg_options: dict | None = None,
+    amg_reuse: float = 0.05,
+    nested: bool | str = "auto",
+    full_history: bool = False,
+    keep_iterates: bool = False,
 ) -> Result:
     """Solve the discrete two-membrane contact problem with Newton-min.
 
@@ -78,24 +114,57 @@ def solve(
     ----------
     scene : Scene
         The problem.
-    method : {"exact"}
-        ``"exact"``: every linear step is solved by a sparse direct solver.
+    method : {"inexact", "exact-amg", "exact"}
+        ``"inexact"`` (default): AMG-preconditioned CG inner solves stopped
+        by the estimators (MATH.md section 6, :mod:`fastmem.adaptive`): the
+        inner iteration stops when ``eta_alg <= gamma_alg * max(eta_disc,
+        eta_lin)``, Newton-min when also ``eta_lin <= gamma_lin * eta_disc``.
+        ``"exact-amg"``: the same loop with inner solves to relative residual
+        1e-12, stopping when the active set repeats (the exact baseline for
+        large meshes).  ``"exact"``: every step solved by a sparse direct
+        solver (small meshes).
     path : {"auto", "general", "decoupled"}
         Linear-step formulation; "auto" takes "decoupled" for constant mu.
     max_newton : int
-        Maximum number of Newton-min steps.  Reaching it returns a Result with
-        ``converged=False`` and logs a warning.
+        Maximum number of Newton-min steps (per level).  Reaching it returns
+        a Result with ``converged=False`` and logs a warning.
     initial : tuple (u1, u2, lam) of ndarray, optional
-        Initial iterate; its active set starts the iteration.  Default: the
-        unconstrained problem is the first step (empty active set).
+        Initial iterate; its active set starts the iteration (and it is the
+        warm start of the AMG methods).  Default: see ``nested``.
     monitor : callable, optional
         Called with each history row (a dict) as soon as it is recorded.
     blas_threads : int, optional
         BLAS threads during the solve (default :func:`fastmem.get_threads`).
     estimate : bool
         Attach the guaranteed a posteriori error bound of the returned triple
-        (:func:`fastmem.estimate`; costs one flux reconstruction).  Without it
-        no flux is reconstructed.
+        (:func:`fastmem.estimate`).  ``"inexact"`` computes it anyway (its
+        stopping test needs it) and always attaches it; the other methods
+        reconstruct no flux without ``estimate=True``.
+    gamma_alg, gamma_lin : float
+        Stopping parameters of ``"inexact"`` (default 0.1 each).
+    max_inner : int
+        Maximum CG iterations per Newton step (``"inexact"``; ``"exact-amg"``
+        allows ten times as many).
+    check_every : int
+        Evaluate the cheap estimators every ``check_every`` CG iterations.
+    amg_options : dict, optional
+        Options of :func:`pyamg.smoothed_aggregation_solver` (plus ``cycle``);
+        default :data:`fastmem.amg.AMG_DEFAULTS` (pyamg's defaults, V-cycles).
+    amg_reuse : float
+        Decoupled path: reuse the gap system's AMG hierarchy while the active
+        set differs from the one it was built for in at most this fraction of
+        the interior vertices (0: rebuild whenever it changed).
+    nested : bool or "auto"
+        AMG methods without ``initial``: solve on the chain of coarser meshes
+        (:meth:`Mesh.coarser`, down to about 1000 vertices) and prolong each
+        solution as the initial iterate of the next level.  "auto": when a
+        coarser mesh exists and the data can move to it; otherwise the
+        iteration starts from the unconstrained problem.
+    full_history : bool
+        Reconstruct the flux at every history row, so that every row carries
+        the guaranteed bound ``eta`` (costly; for studies and tests).
+    keep_iterates : bool
+        Keep the triple of every history row in ``result.iterates``.
 
     Returns
     -------
@@ -104,20 +173,28 @@ def solve(
     Raises
     ------
     CyclingError
-        When an active set repeats an earlier, different one.
+        ``"exact"``: when an active set repeats an earlier, different one.
     """
     if not isinstance(scene, Scene):
         raise InputTypeError(f"scene must be a fastmem.Scene, got {type(scene).__name__}")
-    if not isinstance(estimate, (bool, np.bool_)):
-        raise InputTypeError(f"estimate must be True or False, got {estimate!r}")
+    for name, flag in (
+        ("estimate", estimate),
+        ("full_history", full_history),
+        ("keep_iterates", keep_iterates),
+    ):
+        if not isinstance(flag, (bool, np.bool_)):
+            raise InputTypeError(f"{name} must be True or False, got {flag!r}")
     if method not in METHODS:
         raise ParameterError(f"method must be one of {METHODS}, got {method!r}")
-    if (
-        isinstance(max_newton, bool)
-        or not isinstance(max_newton, (int, np.integer))
-        or (max_newton < 1)
-    ):
-        raise ParameterError(f"max_newton must be a positive integer, got {max_newton!r}")
+    _check_positive("max_newton", max_newton, integer=True)
+    _check_positive("max_inner", max_inner, integer=True)
+    _check_positive("check_every", check_every, integer=True)
+    _check_positive("gamma_alg", gamma_alg)
+    _check_positive("gamma_lin", gamma_lin)
+    _check_positive("amg_reuse", amg_reuse, allow_zero=True)
+    if nested not in (True, False, "auto"):
+        raise ParameterError(f"nested must be True, False or 'auto', got {nested!r}")
+    amg_opts = check_amg_options(amg_options)
     if path not in ("auto", "general", "decoupled"):
         raise ParameterError(f"path must be 'auto', 'general' or 'decoupled', got {path!r}")
     if path == "decoupled" and not scene.constant_mu:
@@ -133,19 +210,131 @@ def solve(
         t0 = time.perf_counter()
         _ = scene.loads, scene.weighted_stiffness(1), scene.weighted_stiffness(2)
         timings["assembly"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        step = make_step(scene, path)
-        timings["setup"] = time.perf_counter() - t0
-        result = _newton(scene, step, method, max_newton, init, monitor, timings)
-        if estimate:
-            from .bound import estimate as _estimate
-
+        if method == "exact":
             t0 = time.perf_counter()
-            result.estimate = _estimate(
-                scene, result.u1, result.u2, result.lam, result.r1, result.r2
+            step = make_step(scene, path)
+            timings["setup"] = time.perf_counter() - t0
+            result = _newton(scene, step, method, max_newton, init, monitor, timings)
+            if estimate:
+                from .bound import estimate as _estimate
+
+                t0 = time.perf_counter()
+                result.estimate = _estimate(
+                    scene, result.u1, result.u2, result.lam, result.r1, result.r2
+                )
+                timings["estimate"] = time.perf_counter() - t0
+        else:
+            opts = AdaptiveOptions(
+                gamma_alg=float(gamma_alg),
+                gamma_lin=float(gamma_lin),
+                max_inner=int(max_inner),
+                check_every=int(check_every),
+                amg_options=amg_opts,
+                amg_reuse=float(amg_reuse),
+                full_history=bool(full_history),
+                keep_iterates=bool(keep_iterates),
             )
-            timings["estimate"] = time.perf_counter() - t0
+            result = _solve_amg(
+                scene, method, path, opts, max_newton, init, nested, monitor, estimate, timings
+            )
     timings["total"] = time.perf_counter() - t_start
+    return result
+
+
+def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, estimate, timings):
+    """Nested iteration over the coarse chain, then the AMG Newton-min on ``scene``."""
+    from .bound import evaluate
+
+    chain = []
+    if init is None and nested is not False:
+        t0 = time.perf_counter()
+        chain = coarse_scenes(scene) if path != "decoupled" or scene.constant_mu else []
+        timings["coarsening"] = time.perf_counter() - t0
+        if nested is True and not chain:
+            logger.warning("nested=True but this mesh has no usable coarser version")
+    levels = chain + [scene]
+    rows = {name: [] for name in ADAPTIVE_HISTORY_COLUMNS}
+    level_info = []
+    iterates = []
+    triple = init
+    disc_hint = None
+    t_solve = time.perf_counter()
+    out = None
+    for lev, sc in enumerate(levels):
+        t0 = time.perf_counter()
+        if lev > 0:
+            triple = prolong_triple(sc, levels[lev - 1], triple)
+            h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
+            disc_hint = None if out["eta_disc"] is None else out["eta_disc"] * h_ratio
+        step = make_step(sc, path)
+        out = newton_amg(
+            sc, step, method, opts, max_newton, triple, monitor, lev, disc_hint, rows
+        )
+        triple = (out["u1"], out["u2"], out["lam"])
+        iterates.extend(out["iterates"])
+        info = {
+            "level": lev,
+            "n_vertices": sc.mesh.n_vertices,
+            "newton": out["n_newton"],
+            "inner": out["inner"],
+            "converged": out["converged"],
+            "seconds": time.perf_counter() - t0,
+            **{k: v for k, v in out["stats"].items()},
+        }
+        level_info.append(info)
+        logger.info(
+            "level %d (%d vertices): %d Newton steps, %d inner iterations, %.2fs",
+            lev,
+            sc.mesh.n_vertices,
+            out["n_newton"],
+            out["inner"],
+            info["seconds"],
+        )
+    timings["solve"] = time.perf_counter() - t_solve
+    est = out["estimate"]
+    if est is None and (estimate or method == "inexact"):
+        t0 = time.perf_counter()
+        est = evaluate(
+            scene, out["u1"], out["u2"], out["lam"], out["r1"], out["r2"], out["local"], out["glob"]
+        )
+        timings["estimate"] = time.perf_counter() - t0
+    history = _history_arrays(rows, ADAPTIVE_HISTORY_COLUMNS)
+    mesh = scene.mesh
+    params = scene.parameters()
+    params["solver"] = {
+        "method": method,
+        "path": step.name,
+        "max_newton": max_newton,
+        "gamma_alg": opts.gamma_alg,
+        "gamma_lin": opts.gamma_lin,
+        "max_inner": opts.max_inner,
+        "check_every": opts.check_every,
+        "amg_reuse": opts.amg_reuse,
+        "amg_options": {k: repr(v) for k, v in opts.amg_options.items()},
+        "nested_levels": len(levels),
+        "levels": level_info,
+        "stop_reason": out["reason"],
+        "threads": get_threads(),
+    }
+    result = Result(
+        mesh=mesh,
+        u1=out["u1"],
+        u2=out["u2"],
+        lam=out["lam"],
+        r1=out["r1"],
+        r2=out["r2"],
+        active=out["active"],
+        history=history,
+        timings=timings,
+        parameters=params,
+        converged=out["converged"],
+        n_newton=out["n_newton"],
+        method=method,
+        path=step.name,
+        estimate=est,
+    )
+    if opts.keep_iterates:
+        result.iterates = iterates
     return result
 
 
@@ -221,13 +410,7 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
             max_newton,
             n_changed,
         )
-    history = {
-        name: np.asarray(
-            rows[name],
-            dtype=np.float64 if name in ("comp_norm", "res_norm", "seconds") else np.int64,
-        )
-        for name in HISTORY_COLUMNS
-    }
+    history = _history_arrays(rows, HISTORY_COLUMNS)
     params = scene.parameters()
     params["solver"] = {
         "method": method,

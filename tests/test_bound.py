@@ -50,7 +50,7 @@ def _triples(ms, mesh, scene, exact, rng):
     lam[ii] = -np.abs(lam[ii]) - 0.01 * scale_l
     out["infeasible"] = (u1, u2, lam)
     for k in (1, 2):
-        r = fm.solve(scene, max_newton=k)
+        r = fm.solve(scene, max_newton=k, method="exact")
         out[f"newton {k}"] = (r.u1, r.u2, r.lam)
     u1, u2, _ = ms.interpolate(mesh)
     out["interpolant, lam=0"] = (u1, u2, np.zeros(mesh.n_vertices))
@@ -63,7 +63,7 @@ def test_bound_is_guaranteed(case, rng, caplog):
     for n in SIZES:
         mesh = fm.Mesh.square(n)
         scene = ms.scene(mesh)
-        exact = fm.solve(scene, estimate=True)
+        exact = fm.solve(scene, estimate=True, method="exact")
         err = ms.energy_error(mesh, exact.u1, exact.u2)
         assert exact.eta >= err, (n, exact.eta, err)
         if n == SIZES[-1]:
@@ -77,14 +77,14 @@ def test_bound_is_guaranteed(case, rng, caplog):
 def test_effectivity_on_the_smooth_default_case():
     ms = fm.Manufactured()
     mesh = fm.Mesh.square(64)
-    r = fm.solve(ms.scene(mesh), estimate=True)
+    r = fm.solve(ms.scene(mesh), estimate=True, method="exact")
     eff = r.eta / ms.energy_error(mesh, r.u1, r.u2)
     assert 1.0 <= eff <= 1.5
 
 
 def test_components_at_the_exact_discrete_solution():
     scene = fm.Scene(fm.Mesh.square(32), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
-    r = fm.solve(scene, estimate=True)
+    r = fm.solve(scene, estimate=True, method="exact")
     tot = r.estimate.totals
     assert tot["eta_lin"] == 0.0  # feasible: lam >= 0 and gap >= 0 at every vertex
     assert tot["eta_alg"] < 1e-10 * tot["eta_disc"]  # exact solve: R at round-off
@@ -98,7 +98,7 @@ def test_components_at_the_exact_discrete_solution():
 def test_components_react_to_their_causes():
     """eta_alg grows with the residual, eta_lin with infeasibility."""
     scene = fm.Scene(fm.Mesh.square(16), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
-    r = fm.solve(scene)
+    r = fm.solve(scene, method="exact")
     ii = scene.mesh.interior_vertices
     u1 = r.u1.copy()
     u1[ii[len(ii) // 2]] += 1e-3
@@ -123,7 +123,7 @@ def test_estimate_validates_its_triple():
 
 
 def test_archive_keeps_the_estimate(tmp_path):
-    r = fm.solve(fm.Scene(fm.Mesh.square(8), f=(-1.0, 1.0), g=0.1), estimate=True)
+    r = fm.solve(fm.Scene(fm.Mesh.square(8), f=(-1.0, 1.0), g=0.1), estimate=True, method="exact")
     r.save(tmp_path / "r.h5")
     back = fm.load(tmp_path / "r.h5")
     assert back.eta == r.eta
@@ -138,7 +138,7 @@ def test_flux_term_kernel_matches_numpy_reference(rng):
     mesh = fm.Mesh.lshape(8)
     mu1 = rng.uniform(0.5, 2.0, mesh.n_triangles)
     scene = fm.Scene(mesh, mu=(mu1, 3.0), f=(lambda x, y: np.sin(x) - 1.0, 1.0), g=0.1)
-    r = fm.solve(scene)
+    r = fm.solve(scene, method="exact")
     u1 = r.u1 + 0.01 * rng.standard_normal(mesh.n_vertices)
     fl = reconstruct(scene, u1, r.u2, r.lam)
     for a, b in zip(

@@ -33,7 +33,7 @@ def check_archive(path, n_cells):
     for field in (result.u1, result.u2, result.lam, result.r1, result.r2, result.active):
         assert field.shape == (n_vertices,)
     assert result.converged is True
-    assert result.method == "exact"
+    assert result.method == "inexact"
     assert result.path == "decoupled"
     bnd = result.mesh.boundary_vertices
     assert_allclose(result.u1[bnd], 0.1, rtol=0, atol=1e-14)
@@ -56,7 +56,8 @@ def test_run_subprocess(tmp_path):
     )
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
-    assert "|min(gap,lam)|" in proc.stdout
+    assert "eta_disc" in proc.stdout
+    assert "inner" in proc.stdout
     assert "contact fraction" in proc.stdout
     assert "81 vertices, 128 triangles" in proc.stdout
     assert "converged" in proc.stdout
@@ -65,13 +66,15 @@ def test_run_subprocess(tmp_path):
     # the printed contact fraction is the archived one
     printed = [ln for ln in proc.stdout.splitlines() if "contact fraction" in ln][0]
     assert float(printed.split()[2]) == pytest.approx(result.contact_fraction, abs=5e-5)
-    # one monitor row per Newton step
+    # one monitor row per estimator evaluation: the archived history, row by row
     rows = [
         ln.split()
         for ln in proc.stdout.splitlines()
-        if ln.strip() and ln.split()[0].isdigit() and len(ln.split()) == 6
+        if ln.strip() and ln.split()[0].isdigit() and len(ln.split()) == 10
     ]
-    assert [int(r[0]) for r in rows] == list(range(1, result.n_newton + 1))
+    assert [int(r[1]) for r in rows] == result.history["k"].tolist()
+    assert [int(r[3]) for r in rows] == result.history["inner_total"].tolist()
+    assert int(rows[-1][1]) == result.n_newton
 
 
 def test_run_in_process(tmp_path, capsys):
@@ -79,7 +82,8 @@ def test_run_in_process(tmp_path, capsys):
     rc = main(["run", "--n", "6", "--mu1", "2", "--g", "0.05", "-o", str(out)])
     captured = capsys.readouterr()
     assert rc == 0, captured.err
-    assert "|min(gap,lam)|" in captured.out
+    assert "eta_disc" in captured.out
+    assert "inner" in captured.out
     assert "contact fraction" in captured.out
     assert "49 vertices" in captured.out
     assert "mu = (2, 1)" in captured.out
@@ -101,7 +105,7 @@ def test_run_quiet_and_no_save(tmp_path, capsys, monkeypatch):
     rc = main(["run", "--n", "4", "-q", "--no-save"])
     captured = capsys.readouterr()
     assert rc == 0
-    assert "|min(gap,lam)|" not in captured.out
+    assert "inner  total" not in captured.out  # no monitor table
     assert "contact fraction" in captured.out
     assert "archive" not in captured.out
     assert list(tmp_path.iterdir()) == []
@@ -112,7 +116,7 @@ def test_info(archive, capsys):
     out = capsys.readouterr().out
     assert "49 vertices, 72 triangles" in out
     assert "converged         True" in out
-    assert "exact / decoupled" in out
+    assert "inexact / decoupled" in out
 
 
 def test_info_json(archive, capsys):
@@ -121,8 +125,8 @@ def test_info_json(archive, capsys):
     assert summary["n_vertices"] == 49
     assert summary["n_triangles"] == 72
     assert summary["converged"] is True
-    assert summary["method"] == "exact"
-    assert summary["n_history_rows"] == summary["n_newton"] >= 1
+    assert summary["method"] == "inexact"
+    assert summary["n_history_rows"] >= summary["n_newton"] >= 1
     assert summary["parameters"]["g"]["value"] == 0.1
 
 
@@ -275,5 +279,11 @@ def test_run_prints_the_bound_and_no_estimate_skips_it(tmp_path, capsys):
     assert "eta_alg" in out
     assert fm.load(tmp_path / "a.h5").eta > 0
     assert main(["run", "--n", "8", "-q", "--no-estimate", "-o", str(tmp_path / "b.h5")]) == 0
-    assert "eta" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "error bound" not in out
+    assert "method = exact-amg" in out
     assert fm.load(tmp_path / "b.h5").estimate is None
+    # the inexact method cannot run without its estimator
+    argv = ["run", "--n", "8", "--no-save", "--no-estimate", "--method", "inexact"]
+    assert main(argv) == 2
+    assert "--no-estimate cannot be combined" in capsys.readouterr().err

@@ -102,7 +102,7 @@ def case(mesh_name, data_name):
     mu, f, perturb = DATASETS[data_name]
     mu = mu(mesh) if callable(mu) else mu
     scene = fm.Scene(mesh, mu=mu, f=tuple(_load(fi, mesh) for fi in f), g=0.1)
-    sol = fm.solve(scene)
+    sol = fm.solve(scene, method="exact")
     assert sol.converged
     u1, u2, lam = sol.u1, sol.u2, sol.lam
     if perturb:
@@ -404,7 +404,7 @@ def test_package_matches_reference_other_load_degree(load_degree):
     scene = fm.Scene(
         mesh, mu=(2.0, 1.0), f=(f1_callable, f2_callable), g=0.1, load_degree=load_degree
     )
-    sol = fm.solve(scene)
+    sol = fm.solve(scene, method="exact")
     u1, u2, lam = _perturb(mesh, sol.u1, sol.u2, sol.lam, seed=11)
     r1, r2 = residuals(scene, u1, u2, lam)
     ref = naive_flux.naive_reconstruct(scene, u1, u2, lam, r1, r2)
@@ -465,7 +465,7 @@ def test_exact_without_load_or_contact(mesh_name):
     """f = 0, constant g: the discrete solution is u1 = g, u2 = 0, lam = 0 and sigma_h = 0."""
     mesh = get_mesh(mesh_name)
     scene = fm.Scene(mesh, mu=(1.0, 3.0), f=(0.0, 0.0), g=0.25)
-    sol = fm.solve(scene)
+    sol = fm.solve(scene, method="exact")
     assert np.allclose(sol.u1, 0.25, rtol=0, atol=1e-14)
     assert np.abs(sol.u2).max() <= 1e-14
     assert np.abs(sol.lam).max() == 0.0

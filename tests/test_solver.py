@@ -26,8 +26,8 @@ def _rel(a, b):
 def test_general_and_decoupled_agree(mu, mesh_kind):
     mesh = fm.Mesh.square(24) if mesh_kind == "square" else perturbed_square(16, 0.2)
     scene = _scene(mesh, mu)
-    a = fm.solve(scene, path="decoupled")
-    b = fm.solve(scene, path="general")
+    a = fm.solve(scene, path="decoupled", method="exact")
+    b = fm.solve(scene, path="general", method="exact")
     assert a.path == "decoupled"
     assert b.path == "general"
     assert a.converged
@@ -41,12 +41,12 @@ def test_general_and_decoupled_agree(mu, mesh_kind):
 
 def test_auto_path_choice():
     mesh = fm.Mesh.square(8)
-    assert fm.solve(_scene(mesh, (1.0, 2.0))).path == "decoupled"
+    assert fm.solve(_scene(mesh, (1.0, 2.0)), method="exact").path == "decoupled"
     mu1 = np.full(mesh.n_triangles, 1.0)
     mu1[::2] = 2.0
-    assert fm.solve(_scene(mesh, (mu1, 1.0))).path == "general"
+    assert fm.solve(_scene(mesh, (mu1, 1.0)), method="exact").path == "general"
     with pytest.raises(ParameterError, match="decoupled"):
-        fm.solve(_scene(mesh, (mu1, 1.0)), path="decoupled")
+        fm.solve(_scene(mesh, (mu1, 1.0)), path="decoupled", method="exact")
 
 
 @pytest.mark.parametrize("path", ["general", "decoupled"])
@@ -54,7 +54,7 @@ def test_auto_path_choice():
 def test_converged_solution_is_exactly_complementary(path, mu):
     mesh = perturbed_square(20, 0.25)
     scene = _scene(mesh, mu, f=(lambda x, y: -1.0 - x, 1.0))
-    r = fm.solve(scene, path=path)
+    r = fm.solve(scene, path=path, method="exact")
     assert r.converged
     ii = mesh.interior_vertices
     gap, lam = (r.u1 - r.u2)[ii], r.lam[ii]
@@ -86,7 +86,7 @@ def test_converged_solution_is_exactly_complementary(path, mu):
 def test_matches_naive_coupled_active_set_solver(mu):
     mesh = perturbed_square(7, 0.25)
     scene = _scene(mesh, mu, f=(-3.0, 2.0), g=0.05)
-    r = fm.solve(scene, path="general")
+    r = fm.solve(scene, path="general", method="exact")
     f1, f2 = scene.loads
     u1, u2, lam, _ = naive.contact_solve(mesh.vertices, mesh.triangles, mu[0], mu[1], f1, f2, 0.05)
     assert r.active.sum() > 0
@@ -98,7 +98,7 @@ def test_per_triangle_mu_matches_naive(rng):
     mesh = perturbed_square(6, 0.2)
     mu1 = rng.uniform(0.5, 2.0, mesh.n_triangles)
     scene = _scene(mesh, (mu1, 1.5), f=(-4.0, 2.0), g=0.05)
-    r = fm.solve(scene)
+    r = fm.solve(scene, method="exact")
     a1 = naive.stiffness(mesh.vertices, mesh.triangles, mu1)
     f1, f2 = scene.loads
     ii = mesh.interior_vertices
@@ -111,7 +111,7 @@ def test_per_triangle_mu_matches_naive(rng):
 @pytest.mark.parametrize("path", ["decoupled", "general"])
 def test_default_scene_symmetric(path):
     mesh = fm.Mesh.square(32)
-    r = fm.solve(fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), path=path)
+    r = fm.solve(fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), path=path, method="exact")
     assert 0.0 < r.contact_fraction < 1.0
     x, y = mesh.vertices.T
     key = {(round(a, 12), round(b, 12)): k for k, (a, b) in enumerate(zip(x, y, strict=True))}
@@ -127,8 +127,8 @@ def test_default_scene_symmetric(path):
 
 def test_initial_guess_at_solution_converges_in_one_step():
     scene = _scene(fm.Mesh.square(16), (1.0, 1.0))
-    r = fm.solve(scene)
-    r2 = fm.solve(scene, initial=(r.u1, r.u2, r.lam))
+    r = fm.solve(scene, method="exact")
+    r2 = fm.solve(scene, initial=(r.u1, r.u2, r.lam), method="exact")
     assert r2.n_newton == 1
     assert r2.converged
     assert _rel(r2.u1, r.u1) < 1e-12
@@ -137,7 +137,7 @@ def test_initial_guess_at_solution_converges_in_one_step():
 def test_step_limit_is_reported(caplog):
     scene = _scene(fm.Mesh.square(32), (1.0, 1.0))
     with caplog.at_level(logging.WARNING, logger="fastmem"):
-        r = fm.solve(scene, max_newton=2)
+        r = fm.solve(scene, max_newton=2, method="exact")
     assert not r.converged
     assert r.n_newton == 2
     assert "did not converge" in caplog.text
@@ -164,12 +164,12 @@ def test_cycling_is_detected(monkeypatch):
 
     monkeypatch.setattr(solver, "make_step", lambda scene, path: Flip())
     with pytest.raises(CyclingError, match="cycles") as info:
-        fm.solve(scene)
+        fm.solve(scene, method="exact")
     assert info.value.history is not None
     assert len(info.value.history["k"]) >= 2
 
 
 def test_monitor_receives_every_row():
     rows = []
-    r = fm.solve(_scene(fm.Mesh.square(16), (1.0, 1.0)), monitor=rows.append)
+    r = fm.solve(_scene(fm.Mesh.square(16), (1.0, 1.0)), monitor=rows.append, method="exact")
     assert [row["k"] for row in rows] == list(range(1, r.n_newton + 1))

@@ -1,0 +1,490 @@
+"""Figures of a result: convergence history, membranes and contact set (``fastmem plot``).
+
+Needs matplotlib (the ``plot`` extra: ``pip install 'fastmem[plot]'``); it is
+imported only when a figure is drawn, so ``import fastmem.plot`` and the
+command-line glue work without it.
+
+* :func:`plot_history` draws the convergence history.  Results of the
+  adaptive methods (history columns ``inner_total`` and ``eta*``) show
+  ``eta``, ``eta_disc``, ``eta_lin`` and ``eta_alg`` against the cumulative
+  number of inner (linear-solver) iterations, with a dotted vertical line where
+  each new Newton step begins (dashed where a new mesh level begins).  Results
+  of the ``"exact"`` method (columns ``comp_norm`` and ``res_norm``) show both
+  norms against the Newton step.
+* :func:`plot_solution` draws ``u1``, ``u2`` and the gap ``u1 - u2`` with the
+  contact set.
+* :func:`plot_result` combines both in one figure and optionally saves it.
+* :func:`add_parser` and :func:`run_plot` implement the ``fastmem plot``
+  subcommand.
+
+Figures are created as standalone :class:`matplotlib.figure.Figure` objects on
+the non-interactive Agg canvas, without pyplot, so plotting never opens a
+window or changes the global matplotlib backend; pyplot is used only when a
+window is asked for (``show=True``, ``fastmem plot --show``).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "MISSING_MATPLOTLIB",
+    "add_parser",
+    "plot_history",
+    "plot_result",
+    "plot_solution",
+    "run_plot",
+]
+
+logger = logging.getLogger(__name__)
+
+MISSING_MATPLOTLIB = "fastmem plot needs matplotlib: pip install 'fastmem[plot]'"
+"""Message of the :class:`ImportError` raised when matplotlib is not installed."""
+
+# (history column, legend label, marker) of the estimator curves of the adaptive methods
+_ESTIMATOR_CURVES = (
+    ("eta", r"$\eta$", "o"),
+    ("eta_disc", r"$\eta_\mathrm{disc}$", "s"),
+    ("eta_lin", r"$\eta_\mathrm{lin}$", "^"),
+    ("eta_alg", r"$\eta_\mathrm{alg}$", "v"),
+)
+# (history column, legend label, marker) of the curves of the "exact" method
+_NEWTON_CURVES = (
+    ("comp_norm", r"$\|\min(u_1 - u_2, \lambda)\|$", "o"),
+    ("res_norm", r"$\|R\|$", "s"),
+)
+_NEWTON_STEP_LABEL = "new Newton step"
+_LEVEL_LABEL = "new mesh level"
+_SOLUTION_SIZE = (3, 1)  # the three panels drawn by plot_solution
+
+
+def _require_matplotlib():
+    """Import matplotlib or raise ImportError with an installation hint."""
+    try:
+        import matplotlib
+    except ImportError as exc:
+        raise ImportError(MISSING_MATPLOTLIB) from exc
+    return matplotlib
+
+
+def _new_figure(figsize, *, pyplot: bool = False):
+    """Create a constrained-layout figure: pyplot-managed if asked, else standalone on Agg."""
+    if pyplot:
+        import matplotlib.pyplot as plt
+
+        return plt.figure(figsize=figsize, layout="constrained")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _column(history: dict, name: str) -> np.ndarray:
+    return np.asarray(history[name], dtype=np.float64).ravel()
+
+
+def _plot_curves(ax, history: dict, x: np.ndarray, curves) -> int:
+    """Plot the columns of ``curves`` present in ``history`` against ``x``, log-safe.
+
+    Non-finite and non-positive points are left out per curve (they have no
+    place on a log axis); curves without any remaining point are not drawn.
+    Returns the number of curves drawn.
+    """
+    drawn = 0
+    for name, label, marker in curves:
+        if name not in history:
+            continue
+        y = _column(history, name)
+        n = min(len(x), len(y))
+        xs, ys = x[:n], y[:n]
+        keep = np.isfinite(xs) & np.isfinite(ys) & (ys > 0)
+        if not keep.any():
+            logger.debug("history column %s has no positive finite value: not plotted", name)
+            continue
+        (line,) = ax.plot(xs[keep], ys[keep], marker=marker, markersize=4, label=label)
+        line.set_gid(name)
+        drawn += 1
+    return drawn
+
+
+def _newton_step_starts(history: dict, x: np.ndarray):
+    """Cumulative inner-iteration counts at which a new Newton step begins.
+
+    A new step begins where ``k`` (or the mesh ``level``, when the history has
+    that column) changes between consecutive rows; its start is the
+    ``inner_total`` of the last row of the previous step.  Returns the starts
+    and, for each, whether it also starts a new mesh level.
+    """
+    if "k" not in history:
+        return np.empty(0), np.empty(0, dtype=bool)
+    keys = [_column(history, "k")]
+    if "level" in history:
+        keys.append(_column(history, "level"))
+    n = min([len(x)] + [len(c) for c in keys])
+    if n < 2:
+        return np.empty(0), np.empty(0, dtype=bool)
+    changed = [c[1:n] != c[: n - 1] for c in keys]
+    rows = np.flatnonzero(np.logical_or.reduce(changed))  # row i + 1 starts a new step
+    new_level = changed[1][rows] if len(changed) > 1 else np.zeros(rows.size, dtype=bool)
+    starts = x[rows]
+    finite = np.isfinite(starts)
+    return starts[finite], new_level[finite]
+
+
+def plot_history(result, ax=None):
+    """Draw the convergence history of a result on a log scale.
+
+    Parameters
+    ----------
+    result : fastmem.Result
+        The result; only ``result.history`` (a dict of 1-D columns) is used.
+        With an ``inner_total`` column (adaptive methods such as
+        ``"inexact"`` and ``"exact-amg"``), the estimator columns ``eta``,
+        ``eta_disc``, ``eta_lin`` and ``eta_alg`` that are present are drawn
+        against the cumulative number of inner iterations, with a dotted
+        vertical line where ``k`` changes (a new Newton step begins) and a
+        dashed one where the mesh ``level`` changes (when recorded).
+        Otherwise (method ``"exact"``), ``comp_norm`` and ``res_norm`` are
+        drawn against the Newton step ``k`` (or the row number without ``k``).
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw on.  By default a new standalone figure with one axes is
+        created.
+
+    Returns
+    -------
+    matplotlib.axes.Axes
+        The axes drawn on.  Each curve is a :class:`~matplotlib.lines.Line2D`
+        whose ``gid`` is its history column name.
+
+    Raises
+    ------
+    ImportError
+        If matplotlib is not installed.
+
+    Notes
+    -----
+    NaN, infinite, zero and negative values cannot be shown on a log axis: they
+    are left out, per curve (estimators are NaN where they were not
+    evaluated).  A curve without any positive finite value is not drawn; a
+    history without any plottable column gives an axes saying so.
+    """
+    _require_matplotlib()
+    from matplotlib.ticker import MaxNLocator
+
+    if ax is None:
+        ax = _new_figure((6.4, 4.8)).add_subplot()
+    history = result.history or {}
+    ax.set_yscale("log")
+    if "inner_total" in history:
+        x = _column(history, "inner_total")
+        drawn = _plot_curves(ax, history, x, _ESTIMATOR_CURVES)
+        starts, new_level = _newton_step_starts(history, x)
+        labelled = set()
+        for start, level in zip(starts, new_level, strict=True):
+            label = _LEVEL_LABEL if level else _NEWTON_STEP_LABEL
+            ax.axvline(
+                start,
+                color="0.3" if level else "0.5",
+                linestyle="--" if level else ":",
+                linewidth=1.0,
+                label="_nolegend_" if label in labelled else label,
+            )
+            labelled.add(label)
+        ax.set_xlabel("cumulative inner iterations")
+        ax.set_ylabel("error estimator")
+        ax.set_title("a posteriori estimators")
+    else:
+        n_rows = max((len(np.ravel(v)) for v in history.values()), default=0)
+        x = _column(history, "k") if "k" in history else np.arange(1.0, n_rows + 1.0)
+        drawn = _plot_curves(ax, history, x, _NEWTON_CURVES)
+        ax.set_xlabel("Newton step $k$")
+        ax.set_ylabel("norm")
+        ax.set_title("Newton-min convergence")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    if drawn:
+        ax.legend(fontsize="small")
+        ax.grid(True, which="major", alpha=0.3)
+    else:
+        ax.text(
+            0.5,
+            0.5,
+            "no plottable history",
+            transform=ax.transAxes,
+            ha="center",
+            va="center",
+            color="0.4",
+        )
+    return ax
+
+
+def plot_solution(result, axes=None):
+    """Draw the two membranes and the contact set of a result.
+
+    Three panels: ``u1`` and ``u2`` (Gouraud-shaded, with colorbars) and the
+    gap ``u1 - u2`` (with a colorbar) with the contact vertices
+    (``result.active``) marked by dots.
+
+    Parameters
+    ----------
+    result : fastmem.Result
+        The result; ``mesh.vertices``, ``mesh.triangles``, ``u1``, ``u2`` and
+        ``active`` are used.
+    axes : sequence of 3 matplotlib.axes.Axes, optional
+        Axes for ``u1``, ``u2`` and the gap.  By default a new standalone
+        figure with three axes in a row is created.  The colorbars take space
+        from these axes.
+
+    Returns
+    -------
+    list of matplotlib.axes.Axes
+        The three axes drawn on.  The contact markers are a
+        :class:`~matplotlib.lines.Line2D` with ``gid`` ``"active"``.
+
+    Raises
+    ------
+    ImportError
+        If matplotlib is not installed.
+    fastmem.errors.ParameterError
+        If ``axes`` is not a sequence of three axes.
+    """
+    _require_matplotlib()
+    from matplotlib.tri import Triangulation
+
+    if axes is None:
+        fig = _new_figure((15.0, 4.6))
+        axes = [fig.add_subplot(1, 3, i + 1) for i in range(3)]
+    else:
+        axes = list(np.ravel(np.asarray(axes, dtype=object)))
+        if len(axes) != 3:
+            from .errors import ParameterError
+
+            raise ParameterError(f"plot_solution needs 3 axes (u1, u2, gap), got {len(axes)}")
+    vertices = np.asarray(result.mesh.vertices, dtype=np.float64)
+    tri = Triangulation(vertices[:, 0], vertices[:, 1], np.asarray(result.mesh.triangles))
+    u1 = np.asarray(result.u1, dtype=np.float64)
+    u2 = np.asarray(result.u2, dtype=np.float64)
+    active = np.asarray(result.active, dtype=bool)
+    n_active = int(active.sum())
+    panels = (
+        (u1, "$u_1$ (membrane 1)", "viridis"),
+        (u2, "$u_2$ (membrane 2)", "viridis"),
+        (u1 - u2, f"gap $u_1 - u_2$, contact set: {n_active} vertices", "magma"),
+    )
+    for ax, (values, title, cmap) in zip(axes, panels, strict=True):
+        mappable = ax.tripcolor(tri, values, shading="gouraud", cmap=cmap)
+        ax.figure.colorbar(mappable, ax=ax, shrink=0.9)
+        ax.set_title(title)
+        ax.set_aspect("equal")
+        ax.set_xlabel("$x$")
+        ax.set_ylabel("$y$")
+    # Dots about a third of the mesh spacing on a square mesh, within readable limits.
+    size = float(np.clip(150.0 / np.sqrt(max(len(vertices), 1)), 0.8, 5.0))
+    (dots,) = axes[2].plot(
+        vertices[active, 0],
+        vertices[active, 1],
+        linestyle="none",
+        marker="o",
+        markersize=size,
+        markerfacecolor="cyan",
+        markeredgecolor="black",
+        markeredgewidth=0.3,
+        label=f"contact set ({n_active} vertices)",
+    )
+    dots.set_gid("active")
+    return axes
+
+
+def _suptitle(result) -> str:
+    mesh = result.mesh
+    status = "converged" if result.converged else "not converged"
+    parts = [
+        f"method {result.method or '?'}",
+        f"{mesh.n_vertices} vertices, {mesh.n_triangles} triangles",
+        f"{status} after {result.n_newton} Newton steps",
+    ]
+    if result.estimate is not None and "eta" in result.estimate.totals:
+        parts.append(rf"$\eta$ = {result.eta:.3e}")
+    return "fastmem: " + ", ".join(parts)
+
+
+def _image_format(path: Path, fig) -> str:
+    """Return the image format selected by the suffix of ``path`` (PNG without a suffix)."""
+    fmt = path.suffix[1:].lower() or "png"
+    supported = fig.canvas.get_supported_filetypes()
+    if fmt not in supported:
+        from .errors import ParameterError
+
+        raise ParameterError(
+            f"cannot save plot as {path}: image format {fmt!r} is not supported; "
+            f"use one of {', '.join('.' + s for s in sorted(supported))}"
+        )
+    return fmt
+
+
+def plot_result(result, path=None, *, show: bool = False):
+    """Draw the history and the solution of a result in one figure; optionally save it.
+
+    The figure has four panels: the convergence history (:func:`plot_history`)
+    and ``u1``, ``u2`` and the gap with the contact set
+    (:func:`plot_solution`), plus one colorbar per solution panel.
+
+    Parameters
+    ----------
+    result : fastmem.Result
+        The result to draw, e.g. from :func:`fastmem.solve` or
+        :func:`fastmem.load`.
+    path : str or os.PathLike, optional
+        Image file to write.  Its suffix selects the format (``.png``,
+        ``.pdf``, ``.svg``, ...); PNG without a suffix (the name is kept as
+        given).  Not written when None.
+    show : bool, default False
+        Create the figure through pyplot and open it in a window
+        (``plt.show()``, blocking) after saving.  Otherwise the figure is a
+        standalone figure on the non-interactive Agg canvas, not registered
+        with pyplot (Jupyter still displays it when it is the cell's value).
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+        The figure.
+
+    Raises
+    ------
+    ImportError
+        If matplotlib is not installed.
+    fastmem.errors.ParameterError
+        If the suffix of ``path`` is not an image format matplotlib can write.
+    OSError
+        If ``path`` cannot be written (e.g. its folder does not exist).
+    """
+    _require_matplotlib()
+    fig = _draw_result(result, path, pyplot=show)
+    if show:
+        import matplotlib.pyplot as plt
+
+        plt.show()
+    return fig
+
+
+def _draw_result(result, path, *, pyplot: bool):
+    """Draw the four-panel figure of :func:`plot_result` and save it; do not show it."""
+    fig = _new_figure((12.0, 9.5), pyplot=pyplot)
+    try:
+        target = None if path is None else Path(os.fspath(path))
+        fmt = None if target is None else _image_format(target, fig)
+        plot_history(result, ax=fig.add_subplot(2, 2, 1))
+        plot_solution(result, axes=[fig.add_subplot(2, 2, i) for i in (2, 3, 4)])
+        fig.suptitle(_suptitle(result))
+        if target is not None:
+            fig.savefig(target, format=fmt, dpi=150)
+            logger.info("wrote plot %s", target)
+    except BaseException:
+        if pyplot:
+            import matplotlib.pyplot as plt
+
+            plt.close(fig)
+        raise
+    return fig
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def add_parser(subparsers):
+    """Add the ``plot`` subcommand to the subparsers of the ``fastmem`` command line.
+
+    ``fastmem plot FILE.h5 [-o OUT.png] [--show]`` draws a result archive with
+    :func:`plot_result` and writes the image (by default ``FILE`` with the
+    suffix ``.png``, next to the archive).
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The object returned by :meth:`argparse.ArgumentParser.add_subparsers`.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The ``plot`` parser; its defaults set ``func`` to :func:`run_plot`
+        (and ``command`` to ``"plot"`` when ``dest="command"``).
+    """
+    p = subparsers.add_parser(
+        "plot",
+        help="draw the convergence history and solution of a result archive (needs matplotlib)",
+    )
+    p.add_argument("file", type=Path, help="result archive (.h5)")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        help="image to write; its suffix selects the format (default: FILE with suffix .png)",
+    )
+    p.add_argument("--show", action="store_true", help="also open the figure in a window")
+    p.set_defaults(func=run_plot)
+    return p
+
+
+def _out(text: str) -> None:
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+def _error(text: str) -> int:
+    sys.stderr.write(f"fastmem: error: {text}\n")
+    return 2
+
+
+def run_plot(args) -> int:
+    """Run ``fastmem plot``: load the archive, draw it and write the image.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        Parsed arguments of the ``plot`` subcommand: ``file`` (Path),
+        ``output`` (Path or None) and ``show`` (bool).
+
+    Returns
+    -------
+    int
+        0 on success; 2 (with a one-line message on stderr) when matplotlib is
+        missing or the image cannot be written.
+
+    Raises
+    ------
+    fastmem.errors.ArchiveError
+        If the archive cannot be read (missing, not HDF5, corrupt, ...).
+    fastmem.errors.ParameterError
+        If the output suffix is not an image format.  Like every
+        :class:`~fastmem.errors.FastmemError`, these are reported by
+        ``fastmem.cli.main`` in one line with exit status 2.
+    """
+    from .errors import FastmemError
+
+    try:
+        _require_matplotlib()
+    except ImportError as exc:
+        return _error(str(exc))
+    from .archive import load
+
+    result = load(args.file)
+    output = args.output if args.output is not None else Path(args.file).with_suffix(".png")
+    try:
+        _draw_result(result, output, pyplot=args.show)
+    except FastmemError:
+        raise
+    except OSError as exc:
+        return _error(f"cannot write {output}: {exc.strerror or exc}")
+    _out(f"wrote {output}")
+    if args.show:
+        import matplotlib.pyplot as plt
+
+        plt.show()
+    return 0
