@@ -244,7 +244,7 @@ class _DecoupledInner:
     def triple(self):
         return self.step.triple(self.active, self.s_full(), self.cg_w.x)
 
-    def s_share(self, scene, mass, c_f):
+    def s_share(self, mass, c_f):
         """Return the part of eta_alg due to the residual of s: C_F ||R_s/B|| / sqrt(mu1 + mu2)."""
         st = self.step
         rho = np.zeros(st.n)
@@ -396,7 +396,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
             r1, r2 = residuals(scene, u1, u2, lam)
             vals, local, glob = ev.cheap(u1, u2, lam, r1, r2)
             if decoupled:
-                s_share = inner.s_share(scene, mass, c_f)
+                s_share = inner.s_share(mass, c_f)
             eta_lin, eta_alg = vals["eta_lin"], vals["eta_alg"]
             est = None
             want_fresh = options.full_history or disc_known is None

@@ -45,6 +45,7 @@ def _build_parser() -> argparse.ArgumentParser:
     sub.required = True
 
     r = sub.add_parser("run", help="solve a scene (default: MATH.md section 8) and save it")
+    r.set_defaults(func=_cmd_run)
     mesh = r.add_mutually_exclusive_group()
     mesh.add_argument(
         "--n",
@@ -108,10 +109,12 @@ def _build_parser() -> argparse.ArgumentParser:
     r.add_argument("-q", "--quiet", action="store_true", help="no per-step monitor")
 
     i = sub.add_parser("info", help="summarise a result archive")
+    i.set_defaults(func=_cmd_info)
     i.add_argument("file", type=Path)
     i.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     e = sub.add_parser("export", help="export a result archive to VTU or XDMF")
+    e.set_defaults(func=_cmd_export)
     e.add_argument("file", type=Path)
     e.add_argument("out", type=Path)
 
@@ -287,8 +290,7 @@ def main(argv=None) -> int:
     args = _build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="fastmem: %(levelname)s: %(message)s")
     try:
-        commands = {"run": _cmd_run, "info": _cmd_info, "export": _cmd_export}
-        return commands[args.command](args) if args.command in commands else args.func(args)
+        return args.func(args)
     except FastmemError as exc:
         sys.stderr.write(f"fastmem: error: {exc}\n")
         return 2

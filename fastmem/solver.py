@@ -248,7 +248,7 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
     chain = []
     if init is None and nested is not False:
         t0 = time.perf_counter()
-        chain = coarse_scenes(scene) if path != "decoupled" or scene.constant_mu else []
+        chain = coarse_scenes(scene)
         timings["coarsening"] = time.perf_counter() - t0
         if nested is True and not chain:
             logger.warning("nested=True but this mesh has no usable coarser version")
@@ -267,9 +267,7 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             disc_hint = None if out["eta_disc"] is None else out["eta_disc"] * h_ratio
         step = make_step(sc, path)
-        out = newton_amg(
-            sc, step, method, opts, max_newton, triple, monitor, lev, disc_hint, rows
-        )
+        out = newton_amg(sc, step, method, opts, max_newton, triple, monitor, lev, disc_hint, rows)
         triple = (out["u1"], out["u2"], out["lam"])
         iterates.extend(out["iterates"])
         info = {
