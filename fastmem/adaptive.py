@@ -52,6 +52,7 @@ from .bound import evaluate
 from .errors import CyclingError
 from .estimators import combine, global_terms, local_terms
 from .linear import DecoupledStep, GeneralStep, residuals
+from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
 
 __all__ = ["ADAPTIVE_HISTORY_COLUMNS", "AdaptiveOptions", "newton_amg"]
 
@@ -70,6 +71,7 @@ ADAPTIVE_HISTORY_COLUMNS = (
     "eta",
     "fresh_disc",
     "seconds",
+    "safeguard",
 )
 
 #: Relative residual of the inner solves of ``exact-amg``.
@@ -89,6 +91,7 @@ class AdaptiveOptions:
         amg_reuse=0.05,
         full_history=False,
         keep_iterates=False,
+        safeguard=True,
     ):
         self.gamma_alg = gamma_alg
         self.gamma_lin = gamma_lin
@@ -98,6 +101,7 @@ class AdaptiveOptions:
         self.amg_reuse = amg_reuse
         self.full_history = full_history
         self.keep_iterates = keep_iterates
+        self.safeguard = safeguard
 
 
 class _Evaluator:
@@ -318,7 +322,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
     k = 0
     t_level = time.perf_counter()
 
-    def record(k, i, n_act, vals, disc, eta, fresh, triple):
+    def record(k, i, n_act, vals, disc, eta, fresh, triple, safeguard=0):
         row = {
             "level": level,
             "k": k,
@@ -331,6 +335,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
             "eta": eta,
             "fresh_disc": int(fresh),
             "seconds": time.perf_counter() - t_level,
+            "safeguard": safeguard,
         }
         for name in ADAPTIVE_HISTORY_COLUMNS:
             rows[name].append(row[name])
@@ -340,18 +345,69 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
             monitor(row)
 
     seen = {}
-    for k in range(1, max_newton + 1):
+    tracker = [math.inf, 0]
+    guard = new_safeguard_record()
+    k = 0
+    while k < max_newton:
+        k += 1
         key = _active_key(active)
         seen[key] = seen.get(key, 0) + 1
         # exact-amg cycles like exact Newton-min; inexact steps may revisit a set
         # legitimately (the warm start differs), but not again and again
-        if k > 1 and not np.array_equal(active, inner.active) and seen[key] > (1 if exact else 2):
+        changed = k > 1 and not np.array_equal(active, inner.active)
+        cycles = changed and seen[key] > (1 if exact else 2)
+        stalled = False
+        if changed and k > 2:
+            gap = (u1 - u2)[interior]
+            merit = float(np.linalg.norm(np.minimum(gap, lam[interior])))
+            stalled = merit_stalled(tracker, merit)
+        if cycles and not options.safeguard:
             raise CyclingError(
                 f"{method} Newton-min cycles on level {level}: the active set of step {k} "
                 f"({int(active.sum())} vertices) was already used {seen[key] - 1} time(s); the "
-                "stiffness matrix is probably not an M-matrix (obtuse angles). Try another mesh.",
+                "stiffness matrix is probably not an M-matrix (obtuse angles). Use "
+                "safeguard=True or another mesh.",
                 history={n: np.asarray(v) for n, v in rows.items()},
             )
+        if (cycles or stalled) and options.safeguard:
+            warm = [u1, u2]
+
+            def face_solve(act, warm=warm):
+                nonlocal inner_total
+                inner.start(act, warm[0], warm[1])
+                inner_total += inner.solve_exact()
+                v1, v2, lm = inner.triple()
+                warm[0], warm[1] = v1, v2
+                return v1, v2, lm
+
+            def on_step(kk, act, triple, disc=disc_known):
+                v1, v2, lm = triple
+                q1, q2 = residuals(scene, v1, v2, lm)
+                vals, _, _ = ev.cheap(v1, v2, lm, q1, q2)
+                record(kk, 0, int(act.sum()), vals, disc, math.nan, False, triple, 1)
+
+            outcome = run_safeguard(
+                scene,
+                face_solve,
+                (u1, u2),
+                k - 1,
+                max_newton - k + 1,
+                guard,
+                "cycle" if cycles else "stall",
+                on_step,
+            )
+            k += outcome.steps - 1
+            u1, u2, lam = outcome.u1, outcome.u2, outcome.lam
+            active = outcome.active
+            seen = {_active_key(active): 1}
+            tracker = [math.inf, 0]
+            if k >= max_newton:
+                reason = f"max_newton = {max_newton} reached (in the safeguard)"
+                r1, r2 = residuals(scene, u1, u2, lam)
+                vals, local, glob = ev.cheap(u1, u2, lam, r1, r2)
+                last = (u1, u2, lam, r1, r2, None, local, glob)
+                break
+            k += 1
         inner.start(active, u1, u2)
         n_act = int(active.sum())
         i0 = inner.iterations
@@ -452,6 +508,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
     u1, u2, lam, r1, r2, est, _, _ = last
     full_active = np.zeros(mesh.n_vertices, dtype=bool)
     full_active[interior] = inner.active
+    stats["safeguard"] = guard
     stats["flux_evaluations"] = ev.n_flux
     stats["flux_seconds"] = ev.flux_seconds
     if decoupled:

@@ -141,7 +141,7 @@ class _Monitor:
 
     def __call__(self, row: dict) -> None:
         if self.enabled:
-            _out(self.line.format(**row))
+            _out(self.line.format(**row) + ("  (safeguard)" if row.get("safeguard") else ""))
 
 
 class _AdaptiveMonitor(_Monitor):

@@ -34,6 +34,7 @@ from .errors import CyclingError, InputTypeError, ParameterError
 from .linear import make_step, residuals
 from .nested import coarse_scenes, prolong_triple
 from .result import Result, check_triple
+from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
 from .scene import Scene
 
 __all__ = ["HISTORY_COLUMNS", "METHODS", "complementarity", "solve"]
@@ -46,7 +47,7 @@ METHODS = ("inexact", "exact-amg", "exact")
 ROUNDOFF_TOL = 1e-9
 
 #: Columns of the per-step history of an exact Newton-min solve.
-HISTORY_COLUMNS = ("k", "n_active", "n_changed", "comp_norm", "res_norm", "seconds")
+HISTORY_COLUMNS = ("k", "n_active", "n_changed", "comp_norm", "res_norm", "seconds", "safeguard")
 
 
 def complementarity(u1, u2, lam, interior):
@@ -107,6 +108,7 @@ def solve(
     nested: bool | str = "auto",
     full_history: bool = False,
     keep_iterates: bool = False,
+    safeguard: bool = True,
 ) -> Result:
     """Solve the discrete two-membrane contact problem with Newton-min.
 
@@ -165,6 +167,17 @@ def solve(
         the guaranteed bound ``eta`` (costly; for studies and tests).
     keep_iterates : bool
         Keep the triple of every history row in ``result.iterates``.
+    safeguard : bool
+        When Newton-min cycles (an active set comes back) or stalls (no new
+        smallest ``||min(gap, lam)||`` in
+        :data:`fastmem.safeguard.STALL_STEPS` steps), switch
+        to the monotone feasible active-set iteration of
+        :mod:`fastmem.safeguard` (exact face solves, energy decreasing at
+        every step) until it reaches the KKT point or its working set
+        settles, then resume Newton-min.  Uses are booked in
+        ``result.parameters["solver"]["safeguard"]`` and in the history
+        column ``safeguard``.  ``False``: cycling raises
+        :class:`~fastmem.errors.CyclingError`.
 
     Returns
     -------
@@ -173,7 +186,7 @@ def solve(
     Raises
     ------
     CyclingError
-        ``"exact"``: when an active set repeats an earlier, different one.
+        With ``safeguard=False``: when an active set repeats an earlier one.
     """
     if not isinstance(scene, Scene):
         raise InputTypeError(f"scene must be a fastmem.Scene, got {type(scene).__name__}")
@@ -181,6 +194,7 @@ def solve(
         ("estimate", estimate),
         ("full_history", full_history),
         ("keep_iterates", keep_iterates),
+        ("safeguard", safeguard),
     ):
         if not isinstance(flag, (bool, np.bool_)):
             raise InputTypeError(f"{name} must be True or False, got {flag!r}")
@@ -214,7 +228,9 @@ def solve(
             t0 = time.perf_counter()
             step = make_step(scene, path)
             timings["setup"] = time.perf_counter() - t0
-            result = _newton(scene, step, method, max_newton, init, monitor, timings)
+            result = _newton(
+                scene, step, method, max_newton, init, monitor, timings, bool(safeguard)
+            )
             if estimate:
                 from .bound import estimate as _estimate
 
@@ -233,12 +249,24 @@ def solve(
                 amg_reuse=float(amg_reuse),
                 full_history=bool(full_history),
                 keep_iterates=bool(keep_iterates),
+                safeguard=bool(safeguard),
             )
             result = _solve_amg(
                 scene, method, path, opts, max_newton, init, nested, monitor, estimate, timings
             )
     timings["total"] = time.perf_counter() - t_start
     return result
+
+
+def _merge_safeguard(records):
+    """Sum the per-level safeguard bookkeeping into one record."""
+    total = new_safeguard_record()
+    for lev, rec in enumerate(records):
+        for name in ("uses", "steps", "seconds"):
+            total[name] += rec[name]
+        total["triggers"] += [f"level {lev}: {t}" for t in rec["triggers"]]
+        total["reached_kkt"] += rec["reached_kkt"]
+    return total
 
 
 def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, estimate, timings):
@@ -312,6 +340,7 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
         "nested_levels": len(levels),
         "levels": level_info,
         "stop_reason": out["reason"],
+        "safeguard": _merge_safeguard([info["safeguard"] for info in level_info]),
         "threads": get_threads(),
     }
     result = Result(
@@ -336,7 +365,7 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
     return result
 
 
-def _newton(scene, step, method, max_newton, init, monitor, timings):
+def _newton(scene, step, method, max_newton, init, monitor, timings, use_safeguard=True):
     mesh = scene.mesh
     interior = mesh.interior_vertices
     c = scene.active_c
@@ -349,9 +378,38 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
     rows = {name: [] for name in HISTORY_COLUMNS}
     converged = False
     t_solve = time.perf_counter()
+    guard = new_safeguard_record()
+    tracker = [np.inf, 0]
+
+    def record(row):
+        for name in HISTORY_COLUMNS:
+            rows[name].append(row[name])
+        if monitor is not None:
+            monitor(row)
+
+    t_row = [time.perf_counter()]
+
+    def safeguard_row(kk, act, triple):
+        v1, v2, lm = triple
+        q1, q2 = residuals(scene, v1, v2, lm)
+        now = time.perf_counter()
+        record(
+            {
+                "k": kk,
+                "n_active": int(act.sum()),
+                "n_changed": int(np.count_nonzero((lm[interior] > c * (v1 - v2)[interior]) != act)),
+                "comp_norm": float(np.linalg.norm(complementarity(v1, v2, lm, interior))),
+                "res_norm": float(np.sqrt(q1 @ q1 + q2 @ q2)),
+                "seconds": now - t_row[0],
+                "safeguard": 1,
+            }
+        )
+        t_row[0] = now
+
     k = 0
-    for k in range(1, max_newton + 1):
-        t0 = time.perf_counter()
+    while k < max_newton:
+        k += 1
+        t0 = t_row[0] = time.perf_counter()
         u1, u2, lam = step.solve(active)
         r1, r2 = residuals(scene, u1, u2, lam)
         new_active = lam[interior] > c * (u1[interior] - u2[interior])
@@ -363,9 +421,9 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
             "comp_norm": float(np.linalg.norm(complementarity(u1, u2, lam, interior))),
             "res_norm": float(np.sqrt(r1 @ r1 + r2 @ r2)),
             "seconds": time.perf_counter() - t0,
+            "safeguard": 0,
         }
-        for name in HISTORY_COLUMNS:
-            rows[name].append(row[name])
+        record(row)
         logger.info(
             "newton %d: |A|=%d changed=%d |min(gap,lam)|=%.3e |R|=%.3e",
             k,
@@ -374,18 +432,34 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
             row["comp_norm"],
             row["res_norm"],
         )
-        if monitor is not None:
-            monitor(row)
         if n_changed == 0:
             converged = True
             break
         key = _active_key(new_active)
-        if key in seen:
+        # the first step starts from the unconstrained solution: its merit is no reference
+        stalled = k > 1 and merit_stalled(tracker, row["comp_norm"])
+        cycles = key in seen
+        if (cycles or stalled) and use_safeguard and k < max_newton:
+            trigger = "cycle" if cycles else "stall"
+            outcome = run_safeguard(
+                scene, step.solve, (u1, u2), k, max_newton - k, guard, trigger, safeguard_row
+            )
+            k += outcome.steps
+            u1, u2, lam = outcome.u1, outcome.u2, outcome.lam
+            r1, r2 = residuals(scene, u1, u2, lam)
+            active = outcome.active
+            if outcome.converged:  # exact face solves: the KKT point is the solution
+                converged = True
+                break
+            seen = {_active_key(active): k}
+            tracker = [np.inf, 0]
+            continue
+        if cycles:
             history = {n: np.asarray(v) for n, v in rows.items()}
             raise CyclingError(
                 f"Newton-min cycles: the active set of step {k + 1} ({int(new_active.sum())} "
                 f"vertices) equals the one of step {seen[key] + 1}; the stiffness matrix is "
-                "probably not an M-matrix (obtuse angles). Try another mesh.",
+                "probably not an M-matrix (obtuse angles). Use safeguard=True or another mesh.",
                 history=history,
             )
         seen[key] = k
@@ -416,6 +490,7 @@ def _newton(scene, step, method, max_newton, init, monitor, timings):
         "max_newton": max_newton,
         "factorizations": step.factorizations,
         "relative_residual": res_rel,
+        "safeguard": guard,
         "threads": get_threads(),
     }
     full_active = np.zeros(mesh.n_vertices, dtype=bool)
