@@ -260,7 +260,9 @@ def _active_key(active):
     return hashlib.blake2b(np.packbits(active).tobytes(), digest_size=16).digest()
 
 
-def newton_amg(scene, step, method, options, max_newton, init, monitor, level, disc_hint, rows):
+def newton_amg(
+    scene, step, method, options, max_newton, init, monitor, level, disc_hint, rows, certify=True
+):
     """Newton-min on one mesh with AMG-CG inner solves (``inexact`` or ``exact-amg``).
 
     Parameters
@@ -282,6 +284,11 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
         decide when a fresh value is worth computing.
     rows : dict of lists
         History columns to append to (shared across levels).
+    certify : bool
+        Accept a stop only with a fresh eta_disc of the returned iterate
+        (default).  ``False`` (intermediate levels of nested iteration, whose
+        solutions only serve as initial guesses): the stopping tests use
+        ``disc_hint`` and no flux is reconstructed, unless no hint exists.
 
     Returns
     -------
@@ -456,7 +463,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
             eta_lin, eta_alg = vals["eta_lin"], vals["eta_alg"]
             est = None
             want_fresh = options.full_history or disc_known is None
-            if not want_fresh:
+            if not want_fresh and certify:
                 cand_inner = eta_alg <= g_alg * max(disc_known, eta_lin)
                 cand_outer = eta_lin <= g_lin * disc_known
                 want_fresh = cand_inner and cand_outer
@@ -467,7 +474,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
             budget = g_alg * max(disc, eta_lin)
             # a solve at round-off meets the criterion even when eta_disc = eta_lin = 0
             inner_ok = eta_alg <= budget or inner.at_roundoff()
-            outer_ok = est is not None and inner_ok and eta_lin <= g_lin * disc
+            outer_ok = (est is not None or not certify) and inner_ok and eta_lin <= g_lin * disc
             record(
                 k,
                 i,
@@ -479,7 +486,7 @@ def newton_amg(scene, step, method, options, max_newton, init, monitor, level, d
                 (u1, u2, lam),
             )
             last = (u1, u2, lam, r1, r2, est, local, glob)
-            if inner_ok and (est is not None or eta_lin > g_lin * disc):
+            if inner_ok and (est is not None or not certify or eta_lin > g_lin * disc):
                 break  # the step is accurate enough (and cannot be the last one, or is checked)
             if i >= options.max_inner:
                 logger.warning(
