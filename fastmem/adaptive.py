@@ -167,6 +167,10 @@ class _GeneralInner:
     def at_roundoff(self):
         return self.cg.relative_residual <= EXACT_AMG_RTOL
 
+    def residual(self):
+        """Relative CG residual, the predictor of eta_alg between checks."""
+        return self.cg.relative_residual
+
     def triple(self):
         return self.step.triple(self.active, self.p @ self.cg.x)
 
@@ -242,6 +246,10 @@ class _DecoupledInner:
     def at_roundoff(self):
         return max(self.cg_w.relative_residual, self.cg_s.relative_residual) <= EXACT_AMG_RTOL
 
+    def residual(self):
+        """Relative CG residual of the gap, the predictor of eta_alg between checks."""
+        return self.cg_w.relative_residual
+
     def s_full(self):
         return self.step._full(self.cg_s.x, self.step.s_boundary)
 
@@ -254,6 +262,23 @@ class _DecoupledInner:
         rho = np.zeros(st.n)
         rho[st.interior] = self.cg_s.r / st.b_int
         return c_f * math.sqrt(max(float(rho @ (mass @ rho)), 0.0) / (st.mu1 + st.mu2))
+
+
+#: A check is skipped while the algebraic estimator predicted from the CG residual,
+#: eta_alg(last check) * |r| / |r(last check)|, exceeds SKIP_MARGIN times the budget ...
+SKIP_MARGIN = 1.5
+#: ... but never for more than MAX_SKIP - 1 consecutive CG iterations.
+MAX_SKIP = 4
+
+
+def _skip_check(last_check, i, inner, budget, options):
+    """Return True when the inner criterion cannot plausibly hold yet (skip the check)."""
+    if last_check is None or options.full_history or i >= options.max_inner:
+        return False
+    i_c, eta_c, res_c = last_check
+    if i - i_c >= MAX_SKIP or res_c <= 0.0 or inner.at_roundoff():
+        return False
+    return eta_c * inner.residual() / res_c > SKIP_MARGIN * budget
 
 
 def _active_key(active):
@@ -304,7 +329,7 @@ def newton_amg(
     interior = mesh.interior_vertices
     c = scene.active_c
     exact = method == "exact-amg"
-    stats = {"amg_setups": 0, "amg_setup_seconds": 0.0, "checks": 0}
+    stats = {"amg_setups": 0, "amg_setup_seconds": 0.0, "checks": 0, "skipped_checks": 0}
     ev = _Evaluator(scene)
     mass = _mass_matrix(scene)
     c_f = friedrichs_constant(mesh)
@@ -449,10 +474,14 @@ def newton_amg(
         outer_ok = False
         budget = math.inf
         s_share = math.inf
+        last_check = None  # (i, eta_alg, CG residual) at the last check of this step
         while True:
             inner_total += inner.iterate(budget, s_share)
             i = inner.iterations - i0
             if i % options.check_every and i < options.max_inner:
+                continue
+            if _skip_check(last_check, i, inner, budget, options):
+                stats["skipped_checks"] += 1
                 continue
             stats["checks"] += 1
             u1, u2, lam = inner.triple()
@@ -461,6 +490,7 @@ def newton_amg(
             if decoupled:
                 s_share = inner.s_share(mass, c_f)
             eta_lin, eta_alg = vals["eta_lin"], vals["eta_alg"]
+            last_check = (i, eta_alg, inner.residual())
             est = None
             want_fresh = options.full_history or disc_known is None
             if not want_fresh and certify:
