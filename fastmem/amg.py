@@ -19,9 +19,14 @@ from .errors import ParameterError
 __all__ = ["AMG_DEFAULTS", "PCG", "amg_preconditioner", "check_amg_options"]
 
 #: Default pyamg options: smoothed aggregation, symmetric strength, V(1,1) cycles
-#: with symmetric Gauss-Seidel (an SPD preconditioner, as CG requires).
+#: with symmetric Gauss-Seidel (an SPD preconditioner, as CG requires).  The
+#: prolongation smoother uses pyamg's row-wise Gershgorin ("local") weighting
+#: instead of a spectral-radius estimate: at n = 512 (default scene, nested
+#: inexact solve) the setups took 0.83 s instead of 1.15 s with the same 75 CG
+#: iterations, the whole solve 6.3 s instead of 6.8 s (medians of 3, same run).
 AMG_DEFAULTS = {
     "strength": "symmetric",
+    "smooth": ("jacobi", {"weighting": "local"}),
     "max_coarse": 500,
     "presmoother": ("gauss_seidel", {"sweep": "symmetric"}),
     "postsmoother": ("gauss_seidel", {"sweep": "symmetric"}),
