@@ -42,8 +42,6 @@ __all__ = ["Fluxes", "reconstruct"]
 
 logger = logging.getLogger(__name__)
 
-_FLUX_RULE_DEGREE = 5  # exact for the degree-4 integrands of the RT1 mass matrix
-
 
 @dataclass
 class Fluxes:
@@ -166,7 +164,6 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
         consts.append(float(f) if mom is None else 0.0)
         moments.append(np.zeros((1, 3, 3)) if mom is None else mom)
     order, color_ptr = _coloring(mesh)
-    bary, w = triangle_rule(_FLUX_RULE_DEGREE)
     coef = _kf.reconstruct_colored(
         order,
         color_ptr,
@@ -190,8 +187,6 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
         consts[1],
         moments[0],
         moments[1],
-        np.ascontiguousarray(bary),
-        np.ascontiguousarray(w),
         int(np.diff(mesh.patch_ptr).max()),
         numba.get_num_threads(),
     )

@@ -1,34 +1,49 @@
 """Equilibrated flux reconstruction: RT1 mixed problems on vertex patches, in parallel.
 
-For vertex a the patch system (MATH.md section 4) in the dof basis of
-:mod:`.rt1` is the symmetric saddle-point matrix
+For vertex a the patch problem (MATH.md section 4) in the dof basis of
+:mod:`.rt1` is the symmetric saddle-point system
 
-    [  M   -D^T   0 ] [sigma]   [ -T_i ]
-    [ -D    0     c ] [  r  ] = [ -G_i ]          (c: only for interior vertices)
-    [  0    c^T   0 ] [  s  ]   [  0   ]
+    [  M   -D^T ] [sigma]   [ -T_i ]
+    [ -D    0   ] [  r  ] = [ -G_i ]
 
-with M the RT1 mass on the patch, D the divergence-P1 coupling, c_q = (1, q)
-(the multiplier s enforces mean-zero r for interior vertices; it vanishes for
-compatible data), T_i = (tau_i^a, v) and G_i = (g_i^a, q).  Both membranes
-share the matrix: one factorisation, two right-hand sides.  The system is
-solved by block elimination (:func:`_saddle_solve`): Cholesky of the SPD RT1
-mass, then Cholesky of the Schur complement on the multipliers, in place in a
-per-thread workspace (no LAPACK call, no allocation per patch).
+with M the RT1 mass on the patch, D the divergence-P1 coupling (three rows
+per triangle), T_i = (tau_i^a, v) and G_i = (g_i^a, q); for an interior vertex
+D has the constants in its left kernel (zero normal flux on the whole patch
+boundary), the data are compatible and r is fixed only up to a constant.
+Only sigma is needed, and it is computed from an equivalent smaller problem:
 
-Factorisation reuse policy: none, deliberately.  The factors of an interior
-patch of a structured mesh (24 flux and 18 multiplier dofs) take about 900
-doubles (7 KB) per vertex, i.e. 7.6 GB at n = 1024 and 30 GB at n = 2048,
-while the factorisation is only 38 % of the per-patch time (6.5 of 17 us,
-measured at n = 512 on one thread); the rest (the RT1 locals and the
-right-hand side) would have to be recomputed anyway.  Re-estimating the same
-mesh therefore costs the same as the first estimate, minus the colouring and
-the load moments, which are cached on the mesh and the scene.
+* Bubble elimination.  On each triangle the two interior (bubble) dofs have
+  divergences spanning the mean-zero part of P1(K): two of the three
+  divergence rows (those of lambda_1, lambda_2; their 2 x 2 bubble block B is
+  invertible) give the bubbles as ``sigma_b = beta - K sigma_e`` with
+  ``K = B^-1 D_e[1:]``, ``beta = B^-1 G[1:]``; what remains of the three rows
+  is their sum, the flux balance ``(div sigma, 1)_K = (g, 1)_K``, whose row
+  ``C_K`` involves edge dofs only.
+* Reduced problem.  Substituting gives the SPD edge-dof problem
+  ``min 1/2 s^T M' s - f^T s`` subject to ``C s = c`` (one row per triangle),
+  with ``M' = M_ee - M_eb K - K^T M_be + K^T M_bb K`` assembled triangle by
+  triangle.  It is solved by Cholesky of M' (2 dofs per free patch edge: 12 on
+  an interior patch of a structured mesh) and of the nt x nt Schur complement
+  ``C M'^-1 C^T``; for an interior patch the latter has the constants in its
+  kernel and the compatible data are solved with ``S + alpha 1 1^T``.
+* Both membranes share the matrices: one factorisation, two right-hand sides.
+
+This is exactly the same sigma as the full system (the same constraints and
+the same quadratic functional); the full 24 + 18 system of an interior patch
+became a 12 + 6 one.  The local matrices come from the Piola map
+(:func:`.rt1.rt1_local_xy`: a few multiply-adds from fixed reference matrices,
+no quadrature), and the dofs a patch adds to its triangles are turned into
+canonical coefficients once per triangle at the end (not once per patch).
+
+Factorisation reuse policy: none, deliberately.  The matrices depend only on
+the geometry, but storing even the per-triangle condensed quantities (M', K,
+C, about 50 doubles) would take 3.4 GB at n = 2048 (8.4M triangles), and
+recomputing them is cheap (the Piola locals are about 70 ns per triangle).
 
 Patch edges: an edge containing a carries two dofs (shared by its two patch
 triangles, or free when it lies on the boundary of the domain); the edge
 opposite a carries none (zero normal flux) unless a is a boundary vertex and
-the edge lies on the boundary (free).  Interior vertices have zero normal flux
-on their whole patch boundary and the mean-zero multiplier space.
+the edge lies on the boundary (free).
 
 Threading: vertices are processed by colour classes of a proper colouring of
 the vertex graph; no two vertices of one class share a triangle, so each
@@ -40,7 +55,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import jit, pjit
-from .rt1 import SCRATCH_SIZE, rt1_local
+from .rt1 import rt1_dofs_to_coefficients, rt1_local_xy
 
 __all__ = ["color_vertices", "flux_estimators", "reconstruct_colored"]
 
@@ -121,73 +136,13 @@ def _upper_solve2(lo, b, n):
 
 
 @jit
-def _saddle_solve(mat, dmat, smat, rs, rq, cvec, n_sig, n_q, interior):
-    """Solve the symmetric patch saddle-point system by block elimination, in place.
-
-    System (both membranes, two right-hand-side columns)::
-
-        M sigma - D^T r = rs        (rs = -T)
-        D sigma         = rq        (rq = G, plus c s for interior patches)
-
-    with M (n_sig x n_sig) SPD.  With M = L L^T, Y = L^-1 D^T and t = L^-1 rs:
-    S r = rq - Y^T t with S = Y^T Y, then sigma = L^-T (Y r + t).  For an
-    interior patch S has the constants in its kernel (zero normal flux on the
-    whole patch boundary) and the data are compatible (sum of rq = 0), so the
-    mean-zero multiplier solves (S + alpha c c^T) r = rq - Y^T t.
-
-    On return ``rs`` holds sigma and ``rq`` the multiplier r.
-    """
-    _cholesky(mat, n_sig)
-    # Y^T rows: solve L y = D[q, :]^T for each q, skipping the leading zeros
-    for q in range(n_q):
-        row = dmat[q]
-        k0 = 0
-        while k0 < n_sig and row[k0] == 0.0:
-            k0 += 1
-        for k in range(k0, n_sig):
-            s = row[k]
-            for m in range(k0, k):
-                s -= mat[k, m] * row[m]
-            row[k] = s / mat[k, k]
-    _lower_solve2(mat, rs, n_sig)  # t = L^-1 rs
-    # Schur complement (lower triangle) and reduced right-hand side
-    for q1 in range(n_q):
-        y1 = dmat[q1]
-        for q2 in range(q1 + 1):
-            y2 = dmat[q2]
-            s = 0.0
-            for k in range(n_sig):
-                s += y1[k] * y2[k]
-            smat[q1, q2] = s
-        b0 = 0.0
-        b1 = 0.0
-        for k in range(n_sig):
-            b0 += y1[k] * rs[k, 0]
-            b1 += y1[k] * rs[k, 1]
-        rq[q1, 0] -= b0
-        rq[q1, 1] -= b1
-    if interior:
-        tr = 0.0
-        cc = 0.0
-        for q in range(n_q):
-            tr += smat[q, q]
-            cc += cvec[q] * cvec[q]
-        alpha = tr / cc
-        for q1 in range(n_q):
-            for q2 in range(q1 + 1):
-                smat[q1, q2] += alpha * cvec[q1] * cvec[q2]
-    _cholesky(smat, n_q)
-    _lower_solve2(smat, rq, n_q)  # r = S^-1 b
-    _upper_solve2(smat, rq, n_q)
-    # sigma = L^-T (Y r + t)
-    for q in range(n_q):
-        y = dmat[q]
-        r0 = rq[q, 0]
-        r1 = rq[q, 1]
-        for k in range(n_sig):
-            rs[k, 0] += y[k] * r0
-            rs[k, 1] += y[k] * r1
-    _upper_solve2(mat, rs, n_sig)
+def _forward_row(lo, y, row, start, n):
+    """In place ``y[row] <- L^-1 y[row]`` for the lower factor ``lo``; ``y[row, :start] = 0``."""
+    for k in range(start, n):
+        s = y[row, k]
+        for m in range(start, k):
+            s -= lo[k, m] * y[row, m]
+        y[row, k] = s / lo[k, k]
 
 
 @jit
@@ -213,19 +168,34 @@ def _patch_solve(
     f2c,
     load1,
     load2,
-    bary,
-    weights,
     out,
-    iwork,
-    fwork,
+    edge_ids,
+    emap,
+    cstart,
+    kmat,
+    beta,
+    mred,
+    fred,
+    cmat,
+    crhs,
+    smat,
+    mass,
+    div,
+    tau,
+    gloc,
 ):
+    """Solve the patch problem of vertex a; add its local dof values to ``out`` (2, M, 8).
+
+    Reduced formulation (module docstring): per triangle the bubbles are
+    eliminated through two of the three divergence equations, leaving an SPD
+    problem on the patch edge dofs with one flux-balance constraint per
+    triangle.  The remaining arguments are per-thread work arrays (sized for
+    the largest patch; no allocation and no array views per patch).
+    """
     pstart = patch_ptr[a]
     nt = patch_ptr[a + 1] - pstart
     interior = not boundary[a]
-    # --- workspace views (no allocation per patch)
-    edge_ids = iwork[0 : 3 * nt]
-    loc2patch = iwork[3 * nt : 11 * nt].reshape((nt, 8))
-    loc2patch[:, :] = -1
+    # --- patch edges with dofs
     ne = 0
     for p in range(nt):
         t = patch_triangles[pstart + p]
@@ -234,7 +204,9 @@ def _patch_solve(
             e = tri_edges[t, k]
             on_bnd = edge_tris[e, 1] < 0
             if k == i and not (on_bnd and not interior):
-                continue  # zero normal flux on this patch-boundary edge
+                emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
+                emap[p, 2 * k + 1] = -1
+                continue
             s = -1
             for q in range(ne):
                 if edge_ids[q] == e:
@@ -244,85 +216,55 @@ def _patch_solve(
                 edge_ids[ne] = e
                 s = ne
                 ne += 1
-            loc2patch[p, 2 * k] = 2 * s
-            loc2patch[p, 2 * k + 1] = 2 * s + 1
-    n_sig = 2 * ne + 2 * nt
+            emap[p, 2 * k] = 2 * s
+            emap[p, 2 * k + 1] = 2 * s + 1
+    n_e = 2 * ne
+    for r in range(n_e):
+        fred[r, 0] = 0.0
+        fred[r, 1] = 0.0
+        for s in range(r + 1):
+            mred[r, s] = 0.0
     for p in range(nt):
-        loc2patch[p, 6] = 2 * ne + 2 * p
-        loc2patch[p, 7] = 2 * ne + 2 * p + 1
-    n_q = 3 * nt
-    o = 0
-    mat = fwork[o : o + n_sig * n_sig].reshape((n_sig, n_sig))  # RT1 mass, then its Cholesky
-    o += n_sig * n_sig
-    dmat = fwork[o : o + n_q * n_sig].reshape((n_q, n_sig))  # D, then Y^T = (L^-1 D^T)^T
-    o += n_q * n_sig
-    smat = fwork[o : o + n_q * n_q].reshape((n_q, n_q))  # Schur complement D M^-1 D^T
-    o += n_q * n_q
-    rs = fwork[o : o + 2 * n_sig].reshape((n_sig, 2))  # -T, then L^-1 (-T), then sigma
-    o += 2 * n_sig
-    rq = fwork[o : o + 2 * n_q].reshape((n_q, 2))  # -G, then the multiplier r
-    o += 2 * n_q
-    cvec = fwork[o : o + n_q]  # mean-value functional (interior patches)
-    o += n_q
-    mat[:, :] = 0.0
-    dmat[:, :] = 0.0
-    rs[:, :] = 0.0
-    rq[:, :] = 0.0
-    coefs = fwork[o : o + 64 * nt].reshape((nt, 8, 8))
-    o += 64 * nt
-    pts = fwork[o : o + 6].reshape((3, 2))
-    mass = fwork[o + 6 : o + 70].reshape((8, 8))
-    div = fwork[o + 70 : o + 94].reshape((3, 8))
-    tau = fwork[o + 94 : o + 142].reshape((3, 2, 8))
-    work = fwork[o + 142 : o + 158].reshape((8, 2))
-    gx = fwork[o + 158 : o + 161]
-    gy = fwork[o + 161 : o + 164]
-    scratch = fwork[o + 164 : o + 164 + SCRATCH_SIZE]
+        for r in range(n_e):
+            cmat[p, r] = 0.0
     lam_a = 0.0 if not interior else lam[a]
     r1a = 0.0 if not interior else rho1[a]
     r2a = 0.0 if not interior else rho2[a]
+    # --- per triangle: local matrices, bubble elimination, scatter
     for p in range(nt):
         t = patch_triangles[pstart + p]
         i = patch_local[pstart + p]
-        tri = triangles[t]
-        for v in range(3):
-            pts[v, 0] = vertices[tri[v], 0]
-            pts[v, 1] = vertices[tri[v], 1]
-        area = rt1_local(
-            pts, tri, diameters[t], bary, weights, coefs[p], mass, div, tau, work, scratch
-        )
-        # gradients of the hat functions: rot(edge opposite) / (2|K|)
-        for v in range(3):
-            ia = (v + 1) % 3
-            ib = (v + 2) % 3
-            gx[v] = -(pts[ib, 1] - pts[ia, 1]) / (2.0 * area)
-            gy[v] = (pts[ib, 0] - pts[ia, 0]) / (2.0 * area)
-        du1x = u1[tri[0]] * gx[0] + u1[tri[1]] * gx[1] + u1[tri[2]] * gx[2]
-        du1y = u1[tri[0]] * gy[0] + u1[tri[1]] * gy[1] + u1[tri[2]] * gy[2]
-        du2x = u2[tri[0]] * gx[0] + u2[tri[1]] * gx[1] + u2[tri[2]] * gx[2]
-        du2y = u2[tri[0]] * gy[0] + u2[tri[1]] * gy[1] + u2[tri[2]] * gy[2]
+        i0 = triangles[t, 0]
+        i1 = triangles[t, 1]
+        i2 = triangles[t, 2]
+        x0 = vertices[i0, 0]
+        y0 = vertices[i0, 1]
+        x1 = vertices[i1, 0]
+        y1 = vertices[i1, 1]
+        x2 = vertices[i2, 0]
+        y2 = vertices[i2, 1]
+        area = rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau)
+        # grad u = sum_v u_v rot(edge opposite v) / (2|K|); grad psi_a likewise
+        inv2a = 0.5 / area
+        du1x = -(u1[i0] * (y2 - y1) + u1[i1] * (y0 - y2) + u1[i2] * (y1 - y0)) * inv2a
+        du1y = (u1[i0] * (x2 - x1) + u1[i1] * (x0 - x2) + u1[i2] * (x1 - x0)) * inv2a
+        du2x = -(u2[i0] * (y2 - y1) + u2[i1] * (y0 - y2) + u2[i2] * (y1 - y0)) * inv2a
+        du2y = (u2[i0] * (x2 - x1) + u2[i1] * (x0 - x2) + u2[i2] * (x1 - x0)) * inv2a
+        if i == 0:
+            gax = -(y2 - y1) * inv2a
+            gay = (x2 - x1) * inv2a
+        elif i == 1:
+            gax = -(y0 - y2) * inv2a
+            gay = (x0 - x2) * inv2a
+        else:
+            gax = -(y1 - y0) * inv2a
+            gay = (x1 - x0) * inv2a
         m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
         m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
-        # sigma-sigma block and the flux target -(tau, v), tau = mu psi_a grad u
-        for r in range(8):
-            pr = loc2patch[p, r]
-            if pr < 0:
-                continue
-            for c in range(8):
-                pc = loc2patch[p, c]
-                if pc >= 0:
-                    mat[pr, pc] += mass[r, c]
-            rs[pr, 0] -= m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
-            rs[pr, 1] -= m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
-        # divergence coupling (block D, one triangle's rows), data (g, q)
-        q0 = 3 * p
-        dot1 = m1 * (gx[i] * du1x + gy[i] * du1y)
-        dot2 = m2 * (gx[i] * du2x + gy[i] * du2y)
+        # data (g, lambda_j)
+        dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
+        dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
         for j in range(3):
-            for c in range(8):
-                pc = loc2patch[p, c]
-                if pc >= 0:
-                    dmat[q0 + j, pc] = div[j, c]
             mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
             if load1.shape[0] == 1:
                 l1 = f1c * mij
@@ -332,24 +274,118 @@ def _patch_solve(
                 l2 = f2c * mij
             else:
                 l2 = load2[t, i, j]
-            rq[q0 + j, 0] = l1 - dot1 * area / 3.0 + (lam_a - r1a) * mij
-            rq[q0 + j, 1] = l2 - dot2 * area / 3.0 + (-lam_a - r2a) * mij
-            cvec[q0 + j] = area / 3.0
-    _saddle_solve(mat, dmat, smat, rs, rq, cvec, n_sig, n_q, interior)
-    sol = rs
-    # add sigma^a to the canonical coefficients of each patch triangle
+            gloc[j, 0] = l1 - dot1 + (lam_a - r1a) * mij
+            gloc[j, 1] = l2 - dot2 + (-lam_a - r2a) * mij
+        # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
+        b00 = div[1, 6]
+        b01 = div[1, 7]
+        b10 = div[2, 6]
+        b11 = div[2, 7]
+        idet = 1.0 / (b00 * b11 - b01 * b10)
+        c00 = b11 * idet
+        c01 = -b01 * idet
+        c10 = -b10 * idet
+        c11 = b00 * idet
+        for r in range(6):
+            kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
+            kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
+        for c in range(2):
+            beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
+            beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
+        # flux target -(tau, v) of the bubbles (tau = mu psi_a grad u)
+        tb10 = -m1 * (du1x * tau[i, 0, 6] + du1y * tau[i, 1, 6])
+        tb11 = -m1 * (du1x * tau[i, 0, 7] + du1y * tau[i, 1, 7])
+        tb20 = -m2 * (du2x * tau[i, 0, 6] + du2y * tau[i, 1, 6])
+        tb21 = -m2 * (du2x * tau[i, 0, 7] + du2y * tau[i, 1, 7])
+        # flux balance row: sum of the three divergence rows (bubbles eliminated)
+        sb0 = div[0, 6] + div[1, 6] + div[2, 6]
+        sb1 = div[0, 7] + div[1, 7] + div[2, 7]
+        st = n_e
+        for r in range(6):
+            pr = emap[p, r]
+            if pr < 0:
+                continue
+            if pr < st:
+                st = pr
+            k0 = kmat[p, 0, r]
+            k1 = kmat[p, 1, r]
+            cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
+            # A = M_eb - K^T M_bb (row r)
+            a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
+            a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
+            te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
+            te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
+            fred[pr, 0] += te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
+            fred[pr, 1] += te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
+            # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K = M_ee - A K - K^T M_be
+            for s in range(6):
+                ps = emap[p, s]
+                if ps >= 0 and ps <= pr:
+                    mred[pr, ps] += (
+                        mass[r, s]
+                        - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
+                        - (mass[s, 6] * k0 + mass[s, 7] * k1)
+                    )
+        cstart[p] = st
+        for c in range(2):
+            crhs[p, c] = (
+                gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
+            )
+    # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
+    _cholesky(mred, n_e)
+    _lower_solve2(mred, fred, n_e)  # t = L^-1 f
+    for p in range(nt):
+        _forward_row(mred, cmat, p, cstart[p], n_e)  # rows of Y^T = (L^-1 C^T)^T
+    for p1 in range(nt):
+        s1 = cstart[p1]
+        for p2 in range(p1 + 1):
+            s = 0.0
+            for k in range(max(s1, cstart[p2]), n_e):
+                s += cmat[p1, k] * cmat[p2, k]
+            smat[p1, p2] = s
+        b0 = 0.0
+        b1 = 0.0
+        for k in range(s1, n_e):
+            b0 += cmat[p1, k] * fred[k, 0]
+            b1 += cmat[p1, k] * fred[k, 1]
+        crhs[p1, 0] = b0 - crhs[p1, 0]
+        crhs[p1, 1] = b1 - crhs[p1, 1]
+    if interior:
+        # zero normal flux on the whole patch boundary: the flux balance rows
+        # sum to zero, S has the constants in its kernel and the data are
+        # compatible; any multiplier of the consistent system will do
+        tr = 0.0
+        for p in range(nt):
+            tr += smat[p, p]
+        alpha = tr / nt
+        for p1 in range(nt):
+            for p2 in range(p1 + 1):
+                smat[p1, p2] += alpha
+    _cholesky(smat, nt)
+    _lower_solve2(smat, crhs, nt)  # mu = S^-1 (Y^T t - c)
+    _upper_solve2(smat, crhs, nt)
+    # --- sigma_e = L^-T (t - Y mu), bubbles = beta - K sigma_e
+    for p in range(nt):
+        r0 = crhs[p, 0]
+        r1 = crhs[p, 1]
+        for k in range(cstart[p], n_e):
+            fred[k, 0] -= cmat[p, k] * r0
+            fred[k, 1] -= cmat[p, k] * r1
+    _upper_solve2(mred, fred, n_e)
     for p in range(nt):
         t = patch_triangles[pstart + p]
-        for m in range(8):
-            s1 = 0.0
-            s2 = 0.0
-            for r in range(8):
-                pr = loc2patch[p, r]
-                if pr >= 0:
-                    s1 += coefs[p, m, r] * sol[pr, 0]
-                    s2 += coefs[p, m, r] * sol[pr, 1]
-            out[0, t, m] += s1
-            out[1, t, m] += s2
+        for c in range(2):
+            z0 = beta[p, 0, c]
+            z1 = beta[p, 1, c]
+            for j in range(6):
+                pj = emap[p, j]
+                if pj >= 0:
+                    sj = fred[pj, c]
+                    z0 -= kmat[p, 0, j] * sj
+                    z1 -= kmat[p, 1, j] * sj
+                    out[c, t, j] += sj
+            out[c, t, 6] += z0
+            out[c, t, 7] += z1
 
 
 @pjit
@@ -376,8 +412,6 @@ def reconstruct_colored(
     f2c,
     load1,
     load2,
-    bary,
-    weights,
     max_nt,
     n_chunks_hint,
 ):
@@ -401,8 +435,6 @@ def reconstruct_colored(
         Constant loads, used when ``load1``/``load2`` has shape (1, 3, 3).
     load1, load2 : float64 (M, 3, 3) or (1, 3, 3)
         Load moments ``int_K f lambda_i lambda_j`` for non-constant data.
-    bary, weights : float64
-        Quadrature rule exact for degree 4.
     max_nt : int
         Largest number of triangles in a patch (sizes the workspaces).
     n_chunks_hint : int
@@ -411,21 +443,34 @@ def reconstruct_colored(
 
     Threading: parallel over the vertices of one colour class at a time; a
     patch writes only the rows of its own triangles, which no other vertex of
-    the class touches.
+    the class touches.  The patches accumulate local dof values (the sum of
+    the sigma^a); one final pass over the triangles turns them into canonical
+    coefficients.
     """
     m = triangles.shape[0]
     out = np.zeros((2, m, 8))
-    n_sig = 6 * max_nt + 2  # bound on the flux dofs (<= 2 nt + 1 dof edges, 2 per triangle)
-    n_q = 3 * max_nt
-    f_size = (n_sig + n_q) * (n_sig + n_q + 2) + n_q + 64 * max_nt + 164 + SCRATCH_SIZE
+    nt = max_nt
+    ne = 6 * max_nt  # bound on the edge dofs (3 edges per triangle)
     for c in range(color_ptr.shape[0] - 1):
         lo = color_ptr[c]
         count = color_ptr[c + 1] - lo
         n_chunks = min(count, 8 * n_chunks_hint)
         for ch in prange(n_chunks):
             # one workspace per chunk: no allocation inside the patch loop
-            iwork = np.empty(11 * max_nt, dtype=np.int64)
-            fwork = np.empty(f_size)
+            edge_ids = np.empty(3 * nt, dtype=np.int64)
+            emap = np.empty((nt, 6), dtype=np.int64)
+            cstart = np.empty(nt, dtype=np.int64)
+            kmat = np.empty((nt, 2, 6))
+            beta = np.empty((nt, 2, 2))
+            mred = np.empty((ne, ne))
+            fred = np.empty((ne, 2))
+            cmat = np.empty((nt, ne))
+            crhs = np.empty((nt, 2))
+            smat = np.empty((nt, nt))
+            mass = np.empty((8, 8))
+            div = np.empty((3, 8))
+            tau = np.empty((3, 2, 8))
+            gloc = np.empty((3, 2))
             k0 = lo + (count * ch) // n_chunks
             k1 = lo + (count * (ch + 1)) // n_chunks
             for k in range(k0, k1):
@@ -451,12 +496,32 @@ def reconstruct_colored(
                     f2c,
                     load1,
                     load2,
-                    bary,
-                    weights,
                     out,
-                    iwork,
-                    fwork,
+                    edge_ids,
+                    emap,
+                    cstart,
+                    kmat,
+                    beta,
+                    mred,
+                    fred,
+                    cmat,
+                    crhs,
+                    smat,
+                    mass,
+                    div,
+                    tau,
+                    gloc,
                 )
+    # local dof values -> canonical coefficients, in place
+    rows = out.reshape((2 * m, 8))
+    for t in prange(m):
+        i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        x0, y0 = vertices[i0, 0], vertices[i0, 1]
+        x1, y1 = vertices[i1, 0], vertices[i1, 1]
+        x2, y2 = vertices[i2, 0], vertices[i2, 1]
+        h = diameters[t]
+        rt1_dofs_to_coefficients(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, rows, t)
+        rt1_dofs_to_coefficients(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, rows, m + t)
     return out
 
 
