@@ -17,13 +17,31 @@ more than ``2**16`` elements are chunked and compressed losslessly (gzip level
 1 with the shuffle filter: fast, and effective on float64 fields); smaller ones
 are stored contiguously, where compression gains nothing.
 
+Integrity: the file starts with a 512-byte HDF5 *user block* (ignored by
+HDF5 and h5py) holding a plain-text header, ``FASTMEM-ARCHIVE`` followed by
+the CRC-32 and the size of the rest of the file.  :func:`load` and
+:func:`info` verify it before HDF5 parses a single byte, so random corruption
+anywhere in the file is reported (:class:`~fastmem.errors.ArchiveError`)
+instead of returning wrong numbers.  A file that fails the check, or has no
+such header (a foreign HDF5 file, or an archive written before the header
+existed), is first opened by HDF5 in a separate, time-limited process
+(damaged HDF5 metadata can crash or hang the HDF5 library); only if that
+succeeds is it read here, to report what is wrong with it (foreign format,
+future version, missing or inconsistent datasets).  An archive whose
+checksum does not match is refused in every case, also after a change made
+with h5py: edit results in Python and save them again instead.
+
 Writes are atomic: the archive is written to a temporary file in the target
 folder (named ``.{name}.tmp-<random suffix>``), flushed to disk and renamed onto the
 final name.  If anything fails, the temporary file is removed and an archive
 already present under the final name is left untouched.
 
 Every problem with an archive raises :class:`~fastmem.errors.ArchiveError`
-(a subclass of :class:`OSError`) naming the file.
+(a subclass of :class:`OSError`) naming the file.  Reading treats the file as
+untrusted (see Integrity): sizes are checked against the file size before any
+array is read (a corrupt header cannot trigger a huge allocation), and
+whatever h5py, numpy or the mesh validation raise on a damaged file is
+reported as ArchiveError.
 """
 
 from __future__ import annotations
@@ -34,15 +52,19 @@ import json
 import logging
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
+import zlib
 from datetime import datetime, timezone
+from math import ceil
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from .errors import ArchiveError, ParameterError
-from .result import Estimate, Result
+from .errors import ArchiveError, InputTypeError, ParameterError
+from .result import Estimate, Result, check_result
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "export", "info", "load", "save"]
 
@@ -60,6 +82,16 @@ _REQUIRED_DATASETS = ("mesh/vertices", "mesh/triangles") + tuple(f"solution/{n}"
 _REQUIRED_GROUPS = ("history", "timings")
 _REQUIRED_ATTRS = ("scene", "method", "path", "converged", "n_newton")
 _EXPORT_SUFFIXES = (".vtu", ".xdmf")
+# Largest ratio of array bytes to file bytes: 1 for contiguous storage; deflate
+# expands at most ~1032:1, so chunked (compressed) data gets a wider bound.
+_MAX_EXPANSION = 1100
+_USERBLOCK = 512  # bytes before the HDF5 superblock, for fastmem's integrity header
+_MAGIC = b"FASTMEM-ARCHIVE\n"
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_CHUNK = 1 << 20  # bytes per read while checksumming
+
+#: Seconds (plus one per 20 MB) that the isolated HDF5 probe of an unverified file may take.
+PROBE_TIMEOUT = 30.0
 
 
 def _fastmem_version() -> str:
@@ -207,6 +239,122 @@ def _fsync(path: Path) -> None:
         os.fsync(fh.fileno())
 
 
+def _file_crc(fh, start: int) -> tuple[int, int]:
+    """CRC-32 and byte count of an open binary file from ``start`` to its end."""
+    fh.seek(start)
+    crc, size = 0, 0
+    while chunk := fh.read(_CHUNK):
+        crc = zlib.crc32(chunk, crc)
+        size += len(chunk)
+    return crc, size
+
+
+def _write_integrity_header(path: Path) -> None:
+    """Fill the user block: magic line, then CRC-32 and size of everything after it."""
+    with open(path, "r+b") as fh:
+        crc, size = _file_crc(fh, _USERBLOCK)
+        header = _MAGIC + f"crc32 {crc:08x}\nsize {size}\n".encode("ascii")
+        fh.seek(0)
+        fh.write(header.ljust(_USERBLOCK, b"\0"))
+
+
+def _verify_integrity(p: Path) -> bool | None:
+    """Check the integrity header: True if its checksum matches, False if not, None if absent."""
+    with open(p, "rb") as fh:
+        head = fh.read(_USERBLOCK)
+        if not head.startswith(_MAGIC):
+            return None
+        try:
+            fields = dict(
+                line.split(" ", 1)
+                for line in head[len(_MAGIC) :].rstrip(b"\0").decode().split("\n")
+                if line
+            )
+            want_crc, want_size = int(fields["crc32"], 16), int(fields["size"])
+        except (ValueError, KeyError, UnicodeDecodeError):
+            return False
+        return _file_crc(fh, _USERBLOCK) == (want_crc, want_size)
+
+
+def _has_hdf5_signature(p: Path) -> bool:
+    """Look for the HDF5 superblock signature where HDF5 does (offset 0, 512, 1024, ...)."""
+    size = p.stat().st_size
+    with open(p, "rb") as fh:
+        offset = 0
+        while offset + len(_HDF5_SIGNATURE) <= size:
+            fh.seek(offset)
+            if fh.read(len(_HDF5_SIGNATURE)) == _HDF5_SIGNATURE:
+                return True
+            offset = 512 if offset == 0 else 2 * offset
+    return False
+
+
+# Opens the file with h5py and touches everything load() reads, in a child process:
+# exit 0 when HDF5 can read it all, 3 when a dataset claims more bytes than the file holds.
+# SIGALRM (default action: terminate) ends the child even if its parent died meanwhile.
+_PROBE = """
+import os, signal, sys
+path, expansion, seconds = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+if hasattr(signal, "alarm"):
+    signal.alarm(seconds)
+import h5py
+size = os.path.getsize(path)
+def touch(name, obj):
+    for key in obj.attrs:
+        obj.attrs[key]
+    if isinstance(obj, h5py.Dataset):
+        if obj.size * obj.dtype.itemsize > size * (1 if obj.chunks is None else expansion):
+            sys.exit(3)
+        obj[()]
+with h5py.File(path, "r") as f:
+    touch("/", f)
+    f.visititems(touch)
+"""
+
+
+def _probe(p: Path) -> None:
+    """Let HDF5 read an unverified file in a separate process first (crash/hang isolation)."""
+    timeout = PROBE_TIMEOUT + p.stat().st_size / 20e6
+    try:
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-c",
+                _PROBE,
+                os.fspath(p),
+                str(_MAX_EXPANSION),
+                str(ceil(timeout) + 5),
+            ],
+            capture_output=True,
+            timeout=timeout,
+            check=False,
+        )
+    except subprocess.TimeoutExpired:
+        raise ArchiveError(
+            f"corrupt archive {p}: HDF5 did not finish reading it in {timeout:.0f} s "
+            "(damaged metadata?)"
+        ) from None
+    except OSError as exc:  # no usable interpreter: read it here, unisolated
+        logger.warning("cannot isolate the HDF5 probe of %s (%s); reading it directly", p, exc)
+        return
+    if proc.returncode == 3:
+        raise ArchiveError(f"corrupt archive {p}: a dataset claims more bytes than the file holds")
+    if proc.returncode != 0:
+        lines = proc.stderr.decode("utf-8", "replace").strip().splitlines()
+        why = lines[-1] if lines else f"exit status {proc.returncode}"
+        raise ArchiveError(f"corrupt or truncated archive {p}: HDF5 cannot read it: {why}")
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename durable (best effort: not every platform can open a folder)."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
 @contextlib.contextmanager
 def _atomic_file(target: Path, suffix: str = ""):
     """Yield a temporary path next to ``target``; rename it onto ``target`` on success."""
@@ -218,6 +366,7 @@ def _atomic_file(target: Path, suffix: str = ""):
         _fsync(tmp)
         os.chmod(tmp, _final_mode(target))
         os.replace(tmp, target)
+        _fsync_dir(target.parent)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
@@ -241,6 +390,9 @@ def save(result: Result, path) -> None:
 
     Raises
     ------
+    InputTypeError, DataError, NumericalError
+        If ``result`` is not a Result or violates its invariants (see
+        :func:`fastmem.result.check_result`); nothing is written.
     ArchiveError
         If the parent directory does not exist, a field cannot be stored
         (e.g. a history column name containing ``/`` or an unsupported dtype),
@@ -253,10 +405,13 @@ def save(result: Result, path) -> None:
     stored as JSON; numpy scalars and arrays in it become Python numbers and
     lists.
     """
+    if not isinstance(result, Result):
+        raise InputTypeError(f"result must be a fastmem Result, got {type(result).__name__}")
+    check_result(result)  # fields may have been reassigned since construction
     target = _target(path)
     try:
         with _atomic_file(target) as tmp:
-            with h5py.File(tmp, "w", track_order=True) as f:
+            with h5py.File(tmp, "w", track_order=True, userblock_size=_USERBLOCK) as f:
                 _write_header(f, result)
                 _write_mesh(f, result.mesh)
                 _write_solution(f, result)
@@ -264,6 +419,7 @@ def save(result: Result, path) -> None:
                     _write_estimate(f, result.estimate)
                 _write_history(f, result.history)
                 _write_timings(f, result.timings)
+            _write_integrity_header(tmp)
     except ArchiveError:
         raise
     except OSError as exc:
@@ -329,16 +485,44 @@ def _reading(path):
         raise ArchiveError(f"archive {p} does not exist")
     if not p.is_file():
         raise ArchiveError(f"archive {p} is not a regular file")
-    try:
-        if not h5py.is_hdf5(p):
+    verified = _verify_integrity(p)
+    if verified is not True:
+        if verified is None and not _has_hdf5_signature(p):
             raise ArchiveError(f"{p} is not an HDF5 file")
+        _probe(p)
+    mismatch = (
+        "the checksum in its header does not match (damaged, or changed after fastmem wrote it)"
+    )
+    try:
         with h5py.File(p, "r") as f:
             _check_header(f, p)
             yield f, p
-    except ArchiveError:
+    except ArchiveError as exc:
+        if verified is False:
+            raise ArchiveError(f"{exc}; {mismatch}") from exc
         raise
-    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as exc:
-        raise ArchiveError(f"corrupt or truncated archive {p}: {exc}") from exc
+    except Exception as exc:  # anything h5py, numpy or the validation raise on a damaged file
+        more = f"; {mismatch}" if verified is False else ""
+        raise ArchiveError(
+            f"corrupt or truncated archive {p}: {type(exc).__name__}: {exc}{more}"
+        ) from exc
+    if verified is False:  # readable and consistent, but not what fastmem wrote
+        raise ArchiveError(f"corrupt or modified archive {p}: {mismatch}")
+
+
+def _read(f: h5py.File, name: str, p: Path) -> np.ndarray:
+    """Read dataset ``name`` after checking its size against the file size."""
+    dset = f[name]
+    if not isinstance(dset, h5py.Dataset):
+        raise ArchiveError(f"corrupt archive {p}: /{name} is not a dataset")
+    limit = os.path.getsize(p) * (1 if dset.chunks is None else _MAX_EXPANSION)
+    nbytes = dset.size * dset.dtype.itemsize
+    if nbytes > limit:
+        raise ArchiveError(
+            f"corrupt archive {p}: /{name} claims shape {dset.shape} ({nbytes} bytes), "
+            "more than the file can hold"
+        )
+    return dset[()]
 
 
 def _history_names(g: h5py.Group, p: Path) -> list:
@@ -380,17 +564,18 @@ def load(path) -> Result:
     ArchiveError
         If the file does not exist, is not HDF5, is a foreign HDF5 file, has a
         newer ``format_version`` than this fastmem reads, lacks a required group
-        or dataset, is truncated or otherwise unreadable.
+        or dataset, is truncated, fails a checksum, holds an invalid mesh or
+        non-finite solution, or is otherwise unreadable.
     """
     from .mesh import Mesh
 
     with _reading(path) as (f, p):
-        vertices = f["mesh/vertices"][()]
-        triangles = f["mesh/triangles"][()]
+        vertices = _read(f, "mesh/vertices", p)
+        triangles = _read(f, "mesh/triangles", p)
         n = vertices.shape[0] if vertices.ndim >= 1 else -1
         fields = {}
         for name, field in _SOLUTION.items():
-            arr = f["solution"][name][()]
+            arr = _read(f, f"solution/{name}", p)
             if arr.shape != (n,):
                 raise ArchiveError(
                     f"corrupt archive {p}: /solution/{name} has shape {arr.shape}, "
@@ -400,14 +585,15 @@ def load(path) -> Result:
         estimate = None
         if "estimators" in f:
             g = f["estimators"]
-            maps = {k: v[()] for k, v in g.items() if isinstance(v, h5py.Dataset)}
+            maps = {k: _read(f, f"estimators/{k}", p) for k in g}
             estimate = Estimate(totals=_attrs_dict(g), maps=maps)
         h = f["history"]
-        history = {name: h[name][()] for name in _history_names(h, p)}
+        history = {name: _read(f, f"history/{name}", p) for name in _history_names(h, p)}
         timings = {k: float(v) for k, v in f["timings"].attrs.items()}
         attrs = f.attrs
         parameters = json.loads(_as_str(attrs["scene"]))
-        mesh = Mesh(vertices, triangles)
+        # archives hold validated counter-clockwise meshes: anything else is damage
+        mesh = Mesh(vertices, triangles, orientation="raise")
         result = Result(
             mesh=mesh,
             **fields,
@@ -553,6 +739,8 @@ def export(result: Result, path) -> None:
 
     Raises
     ------
+    InputTypeError, DataError, NumericalError
+        If ``result`` is not a Result or violates its invariants.
     ParameterError
         If the suffix is neither ``.vtu`` nor ``.xdmf``.
     ArchiveError
@@ -564,6 +752,9 @@ def export(result: Result, path) -> None:
     the target folder and renamed when complete.  For ``.xdmf`` the companion
     is renamed first and the ``.xdmf`` last.
     """
+    if not isinstance(result, Result):
+        raise InputTypeError(f"result must be a fastmem Result, got {type(result).__name__}")
+    check_result(result)
     try:
         suffix = Path(os.fspath(path)).suffix.lower()
     except TypeError as exc:

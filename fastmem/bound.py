@@ -12,13 +12,13 @@ import time
 
 import numpy as np
 
-from .errors import DataError, InputTypeError
+from .errors import DataError, InputTypeError, ParameterError
 from .estimators import combine, global_terms, local_terms
 from .flux import Fluxes, _mu_array, reconstruct
 from .kernels import flux as _kf
 from .linear import residuals
 from .quadrature import quadrature_points, triangle_rule
-from .result import Estimate, check_triple
+from .result import Estimate, check_nodal, check_triple
 from .scene import Scene
 
 __all__ = ["estimate", "evaluate", "flux_terms"]
@@ -138,8 +138,12 @@ def estimate(scene: Scene, u1, u2, lam, r1=None, r2=None) -> Estimate:
             )
     lam = lam.copy()
     lam[bnd] = 0.0  # lambda_h lives in X_0h: boundary values are ignored
-    if r1 is None or r2 is None:
+    if (r1 is None) != (r2 is None):
+        raise ParameterError("r1 and r2 must be given together (or both left out)")
+    if r1 is None:
         r1, r2 = residuals(scene, u1, u2, lam)
+    else:
+        r1, r2 = check_nodal(scene.mesh, r1, "r1"), check_nodal(scene.mesh, r2, "r2")
     return evaluate(scene, u1, u2, lam, r1, r2)
 
 

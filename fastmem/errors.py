@@ -5,6 +5,8 @@ each one also subclasses the built-in exception a Python user would expect
 (``ValueError`` for bad values, ``TypeError`` for bad types, ``RuntimeError``
 for solver failures, ``OSError`` for unreadable archives), so both
 ``except fastmem.FastmemError`` and ``except ValueError`` work.
+(``ArithmeticError`` for computations that left the float64 range,
+``AttributeError`` for assignments to immutable objects.)
 
 Messages name the offending field and, where short, its value.
 """
@@ -21,7 +23,9 @@ __all__ = [
     "InputTypeError",
     "MeshError",
     "MeshWarning",
+    "NumericalError",
     "ParameterError",
+    "ReadOnlyError",
 ]
 
 
@@ -41,12 +45,24 @@ class ParameterError(FastmemError, ValueError):
     """A scalar parameter is out of range (e.g. a non-positive mu or a negative g)."""
 
 
+class ReadOnlyError(FastmemError, AttributeError):
+    """An attribute of an immutable object (a Mesh or a Scene) was assigned: build a new one."""
+
+
 class DataError(FastmemError, ValueError):
     """Problem data (f, g, nodal vectors) have a wrong shape or non-finite values."""
 
 
 class ArchiveError(FastmemError, OSError):
     """A result archive cannot be read or written (foreign, corrupt or future format)."""
+
+
+class NumericalError(FastmemError, ArithmeticError):
+    """A computation produced NaN or inf (float64 overflow or breakdown).
+
+    Raised instead of returning non-finite results, e.g. when the data are so large or so
+    badly scaled that the solution, the residuals or the estimate overflow.
+    """
 
 
 class ConvergenceError(FastmemError, RuntimeError):

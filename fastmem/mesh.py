@@ -17,8 +17,9 @@ Conventions
 
 Validation policy
 -----------------
-Refused with :class:`~fastmem.errors.MeshError`: wrong shapes, non-finite
-coordinates, indices out of range, triangles repeating a vertex, zero-area
+Refused with :class:`~fastmem.errors.MeshError`: wrong shapes, empty arrays,
+non-finite coordinates, coordinates outside the supported length range (see
+below), indices out of range, triangles repeating a vertex, zero-area
 (degenerate) triangles, duplicate vertices (identical coordinates), unused
 vertices, edges shared by more than two triangles (non-manifold edges),
 boundary vertices where the boundary touches itself (non-manifold vertices),
@@ -27,6 +28,27 @@ shared edge).  Clockwise triangles are **re-oriented** with a
 :class:`~fastmem.errors.MeshWarning` (pass ``orientation="raise"`` to refuse
 them instead): a consistently clockwise mesh is common in files, and after
 re-orientation a genuinely tangled mesh is still caught by the fold check.
+Several connected components are allowed (each is a domain of its own).
+
+Supported length range: every coordinate must satisfy ``|x| <= 1e50`` and every
+triangle diameter ``h_K >= 1e-50``.  The kernels form areas, their squares and
+products of gradients; inside this range (far beyond any physical unit system)
+none of them under- or overflows float64.
+
+Dtype policy
+------------
+``vertices``: any real numeric dtype (float16/32/64, longdouble, signed or
+unsigned integers), any memory layout (Fortran order, strided views, read-only
+arrays, nested lists); converted **once** to a new C-contiguous float64 array
+(exact for float16/float32 and for integers up to 2**53; longdouble is
+rounded).  ``triangles``: any signed or unsigned integer dtype, any layout;
+converted once to C-contiguous int64.  Refused with
+:class:`~fastmem.errors.InputTypeError` naming the field: bool, complex,
+object, string, datetime and (for triangles) floating-point arrays, even with
+integral values (no silent truncation), and anything that is not an array
+(None, dicts, ragged lists); masked arrays with masked entries raise
+:class:`~fastmem.errors.DataError`.  The mesh never aliases the caller's
+arrays, and its own arrays are read-only.
 """
 
 from __future__ import annotations
@@ -37,7 +59,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputTypeError, MeshError, MeshWarning, ParameterError
+from .errors import (
+    DataError,
+    InputTypeError,
+    MeshError,
+    MeshWarning,
+    ParameterError,
+    ReadOnlyError,
+)
 
 __all__ = ["Mesh"]
 
@@ -46,11 +75,24 @@ logger = logging.getLogger(__name__)
 # Relative area below which a triangle counts as degenerate: |K| <= tol * h_K^2.
 _DEGENERATE_TOL = 1e-13
 
+# Supported length range: |coordinate| <= _MAX_COORD and h_K >= _MIN_DIAMETER.
+_MAX_COORD = 1e50
+_MIN_DIAMETER = 1e-50
+
 # Local edge i joins local vertices _EDGE_VERTS[i] (edge opposite local vertex i).
 _EDGE_VERTS = np.array([[1, 2], [2, 0], [0, 1]])
 
 
+def _refuse_masked(value, name) -> None:
+    """Masked entries would be read as whatever lies under the mask: refuse them."""
+    if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
+        raise DataError(
+            f"{name} has {int(np.ma.count_masked(value))} masked entries; fill or remove them"
+        )
+
+
 def _as_vertices(vertices) -> np.ndarray:
+    _refuse_masked(vertices, "vertices")
     try:
         arr = np.asarray(vertices)
     except Exception as exc:  # ragged lists and the like
@@ -62,11 +104,21 @@ def _as_vertices(vertices) -> np.ndarray:
         )
     if arr.ndim != 2 or arr.shape[1] not in (2, 3):
         raise MeshError(f"vertices must have shape (N, 2) (or (N, 3) with z = 0), got {arr.shape}")
-    arr = np.array(arr, dtype=np.float64, order="C", copy=True)  # never alias the caller's
+    if arr.shape[0] == 0:
+        raise MeshError("vertices is empty: a mesh needs at least three vertices")
+    with np.errstate(over="ignore"):  # longdouble beyond float64 becomes inf: reported below
+        arr = np.array(arr, dtype=np.float64, order="C", copy=True)  # never alias the caller's
     if not np.isfinite(arr).all():
         bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
         raise MeshError(
             f"vertices contain NaN or inf at {bad.size} vertices (first: vertex {bad[0]})"
+        )
+    big = float(np.abs(arr).max())
+    if big > _MAX_COORD:
+        k = int(np.argmax(np.abs(arr).max(axis=1)))
+        raise MeshError(
+            f"vertices: coordinate {big:.3g} (vertex {k}) is outside the supported range "
+            f"|x| <= {_MAX_COORD:.0e}; rescale the mesh (and the data) to other units"
         )
     if arr.shape[1] == 3:
         scale = max(float(np.abs(arr[:, :2]).max(initial=0.0)), 1.0)
@@ -78,16 +130,17 @@ def _as_vertices(vertices) -> np.ndarray:
 
 
 def _as_triangles(triangles, n_vertices: int) -> np.ndarray:
+    _refuse_masked(triangles, "triangles")
     try:
         arr = np.asarray(triangles)
     except Exception as exc:
         raise InputTypeError(f"triangles cannot be converted to an array: {exc}") from exc
+    if arr.size == 0 and arr.dtype.kind in "iuf" and arr.ndim <= 2:  # [] is a float array
+        raise MeshError("triangles is empty: a mesh needs at least one triangle")
     if arr.dtype.kind not in "iu":
         raise InputTypeError(f"triangles must have an integer dtype, got {arr.dtype}")
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise MeshError(f"triangles must have shape (M, 3), got {arr.shape}")
-    if arr.shape[0] == 0:
-        raise MeshError("triangles is empty: a mesh needs at least one triangle")
     lo, hi = arr.min(), arr.max()
     if lo < 0 or hi >= n_vertices:
         bad = int(lo) if lo < 0 else int(hi)
@@ -122,6 +175,28 @@ class Mesh:
         valid by construction.  The cheap checks (shapes, ranges, areas,
         orientation, unused vertices) always run.
 
+    Raises
+    ------
+    InputTypeError
+        Arrays of a refused dtype (bool, complex, object, strings; floats for
+        ``triangles``) or objects that are not arrays.
+    MeshError
+        Invalid geometry or topology (see the module docstring).
+
+    Notes
+    -----
+    Dtype policy: ``vertices`` of any real numeric dtype and ``triangles`` of
+    any integer dtype (int8 ... uint64), in any memory layout (Fortran order,
+    non-contiguous views, read-only), are converted once to new C-contiguous
+    float64 / int64 arrays; the mesh gives the same result as for the
+    canonical float64 / int64 input of the same values.  Bool, complex,
+    object and string arrays are refused with InputTypeError naming the
+    field.  Coordinates must lie in ``|x| <= 1e50`` and triangle diameters
+    be at least ``1e-50`` (module docstring).
+
+    A Mesh is immutable: its arrays are read-only and assigning a public
+    attribute raises :class:`~fastmem.errors.ReadOnlyError`.
+
     Examples
     --------
     >>> import fastmem as fm
@@ -131,12 +206,14 @@ class Mesh:
     """
 
     def __init__(self, vertices, triangles, *, orientation: str = "fix", validate: bool = True):
-        if orientation not in ("fix", "raise"):
+        if not isinstance(orientation, str) or orientation not in ("fix", "raise"):
             raise ParameterError(f"orientation must be 'fix' or 'raise', got {orientation!r}")
+        if not isinstance(validate, (bool, np.bool_)):
+            raise InputTypeError(f"validate must be True or False, got {validate!r}")
         v = _as_vertices(vertices)
         t = _as_triangles(triangles, v.shape[0])
         self._cache: dict = {}
-        self.parent: Mesh | None = None
+        self._parent: Mesh | None = None
         self._coarse_recipe = None  # (generator name, args) of a coarser version, if any
 
         # Repeated vertex inside one triangle.
@@ -149,6 +226,14 @@ class Mesh:
             )
         area2 = _signed_area2(v, t)
         h2 = _max_edge_sq(v, t)
+        small = h2 < _MIN_DIAMETER**2
+        if small.any():
+            k = int(np.flatnonzero(small)[0])
+            raise MeshError(
+                f"triangles too small: {int(small.sum())} triangles have a diameter below "
+                f"{_MIN_DIAMETER:.0e} (first: triangle {k} = {t[k].tolist()}, diameter "
+                f"{np.sqrt(h2[k]):.3g}); rescale the mesh (and the data) to other units"
+            )
         degenerate = np.abs(area2) <= 2.0 * _DEGENERATE_TOL * h2
         if degenerate.any():
             k = int(np.flatnonzero(degenerate)[0])
@@ -184,6 +269,20 @@ class Mesh:
         if validate:
             self._check_duplicate_vertices()
             self._topology()  # runs the edge checks
+        self._frozen = True
+
+    def __setattr__(self, name, value):
+        if not name.startswith("_") and getattr(self, "_frozen", False):
+            raise ReadOnlyError(
+                f"Mesh.{name} cannot be assigned: a Mesh is immutable (its topology and "
+                "geometry are cached); build a new Mesh"
+            )
+        object.__setattr__(self, name, value)
+
+    @property
+    def parent(self) -> Mesh | None:
+        """The mesh this one was refined from by :meth:`refine`, or None."""
+        return self._parent
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -222,10 +321,19 @@ class Mesh:
 
     @property
     def bounding_box(self) -> tuple[float, float, float, float]:
-        """``(xmin, xmax, ymin, ymax)`` of the vertices."""
-        lo = self.vertices.min(axis=0)
-        hi = self.vertices.max(axis=0)
-        return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
+        """``(xmin, xmax, ymin, ymax)`` of the vertices (computed once)."""
+        if "bounding_box" not in self._cache:
+            lo = self.vertices.min(axis=0)
+            hi = self.vertices.max(axis=0)
+            self._cache["bounding_box"] = (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
+        return self._cache["bounding_box"]
+
+    @property
+    def min_height(self) -> float:
+        """Smallest triangle height ``min_K 2|K| / h_K`` (computed once)."""
+        if "min_height" not in self._cache:
+            self._cache["min_height"] = float(np.min(2.0 * self.areas / self.diameters))
+        return self._cache["min_height"]
 
     @property
     def lumped_mass(self) -> np.ndarray:
@@ -521,7 +629,7 @@ class Mesh:
             axis=1,
         ).reshape(-1, 3)
         fine = type(self)(np.vstack([v, mid]), children, validate=False)
-        fine.parent = self
+        fine._parent = self
         return fine
 
     # -------------------------------------------------------------------- I/O

@@ -72,6 +72,17 @@ def _check_degree(degree) -> int:
     return degree
 
 
+def _real_array(value, name: str) -> np.ndarray:
+    """Return ``value`` as a float64 array, or raise :class:`DataError` naming ``name``."""
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:
+        raise DataError(f"{name} cannot be converted to an array: {exc}") from exc
+    if arr.dtype.kind not in "iuf":
+        raise DataError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    return np.asarray(arr, dtype=np.float64)
+
+
 def _orbit3(a: float) -> np.ndarray:
     """Return the three barycentric points ``(a, a, 1-2a)`` and its permutations."""
     c = 1.0 - 2.0 * a
@@ -197,7 +208,8 @@ def quadrature_points(
     Raises
     ------
     DataError
-        If the arrays have the wrong shapes.
+        If the arrays have the wrong shapes or dtypes (real ``vertices`` and
+        ``bary``, integer ``triangles``), or an index is out of range.
 
     Examples
     --------
@@ -207,15 +219,25 @@ def quadrature_points(
     >>> float(x[0, 0]), float(y[0, 0])
     (1.0, 1.0)
     """
-    vertices = np.asarray(vertices, dtype=np.float64)
-    triangles = np.asarray(triangles)
-    bary = np.asarray(bary, dtype=np.float64)
+    vertices = _real_array(vertices, "vertices")
+    bary = _real_array(bary, "bary")
+    try:
+        triangles = np.asarray(triangles)
+    except Exception as exc:
+        raise DataError(f"triangles cannot be converted to an array: {exc}") from exc
+    if triangles.dtype.kind not in "iu":
+        raise DataError(f"triangles must have an integer dtype, got {triangles.dtype}")
     if vertices.ndim != 2 or vertices.shape[1] != 2:
         raise DataError(f"vertices must have shape (N, 2), got {vertices.shape}")
     if triangles.ndim != 2 or triangles.shape[1] != 3:
         raise DataError(f"triangles must have shape (M, 3), got {triangles.shape}")
     if bary.ndim != 2 or bary.shape[1] != 3:
         raise DataError(f"bary must have shape (nq, 3), got {bary.shape}")
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= vertices.shape[0]):
+        raise DataError(
+            f"triangles reference vertices outside [0, {vertices.shape[0] - 1}] "
+            f"(indices {int(triangles.min())} .. {int(triangles.max())})"
+        )
     corners = vertices[triangles]  # (M, 3, 2)
     x = corners[:, :, 0] @ bary.T
     y = corners[:, :, 1] @ bary.T

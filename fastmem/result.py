@@ -3,13 +3,51 @@
 from __future__ import annotations
 
 import logging
+import math
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Estimate", "Result", "check_triple"]
+__all__ = ["Estimate", "Result", "check_nodal", "check_result", "check_triple"]
 
 logger = logging.getLogger(__name__)
+
+
+def check_nodal(mesh, value, name):
+    """Validate one nodal vector; return a new C-contiguous float64 copy of shape (N,).
+
+    Any real numeric dtype and memory layout is accepted (converted once).  Raises
+    InputTypeError for non-real dtypes (bool, complex, object, strings) and objects
+    that are not arrays, and DataError for a wrong shape, masked entries, NaN/inf or
+    magnitudes beyond :data:`fastmem.scene.MAX_MAGNITUDE` (1e90, where squares and
+    energies would overflow float64), naming ``name``.
+    """
+    from .errors import DataError, InputTypeError
+    from .scene import MAX_MAGNITUDE
+
+    if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
+        raise DataError(f"{name} has masked entries")
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged sequences and the like
+        raise InputTypeError(f"{name} cannot be converted to an array of numbers: {exc}") from exc
+    if arr.dtype.kind not in "iuf":
+        raise InputTypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    n = mesh.n_vertices
+    if arr.shape != (n,):
+        raise DataError(f"{name} must have one value per vertex, shape ({n},), got {arr.shape}")
+    with np.errstate(over="ignore"):  # longdouble beyond float64 becomes inf: refused below
+        arr = np.array(arr, dtype=np.float64, order="C", copy=True)
+    if not np.isfinite(arr).all():
+        raise DataError(f"{name} contains NaN or inf at {int((~np.isfinite(arr)).sum())} vertices")
+    big = float(np.abs(arr).max(initial=0.0))
+    if big > MAX_MAGNITUDE:
+        raise DataError(
+            f"{name} has values up to {big:.3g}, beyond the supported magnitude "
+            f"{MAX_MAGNITUDE:g}; rescale the problem (fastmem computes in float64)"
+        )
+    return arr
 
 
 def check_triple(mesh, triple, prefix=""):
@@ -18,25 +56,60 @@ def check_triple(mesh, triple, prefix=""):
     Raises InputTypeError for non-real dtypes and DataError for wrong shapes
     or non-finite values, naming the array (``prefix`` + name).
     """
-    from .errors import DataError, InputTypeError
+    from .errors import InputTypeError
 
     if not isinstance(triple, (tuple, list)) or len(triple) != 3:
         raise InputTypeError(f"{prefix}(u1, u2, lam) must be a triple of nodal arrays")
+    return [
+        check_nodal(mesh, a, prefix + name)
+        for name, a in zip(("u1", "u2", "lam"), triple, strict=True)
+    ]
+
+
+_NODAL_FIELDS = ("u1", "u2", "lam", "r1", "r2")
+
+
+def check_result(result) -> None:
+    """Check the invariants of a :class:`Result` (cheap, O(N + M), no copies).
+
+    ``mesh`` is a Mesh; ``u1, u2, lam, r1, r2`` are real arrays of shape (N,) with
+    finite values; ``active`` is a bool array of shape (N,); estimator maps have
+    shape (M,).  Non-finite values raise :class:`~fastmem.errors.NumericalError`
+    (the computation overflowed or broke down: never returned silently), wrong
+    types InputTypeError and wrong shapes DataError, naming the field.
+    """
+    from .errors import DataError, InputTypeError, NumericalError
+    from .mesh import Mesh
+
+    mesh = result.mesh
+    if not isinstance(mesh, Mesh):
+        raise InputTypeError(f"Result.mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
     n = mesh.n_vertices
-    out = []
-    for name, a in zip(("u1", "u2", "lam"), triple, strict=True):
-        arr = np.asarray(a)
-        if arr.dtype.kind not in "iuf":
-            raise InputTypeError(f"{prefix}{name} must be real numbers, got dtype {arr.dtype}")
+    for name in (*_NODAL_FIELDS, "active"):
+        arr = getattr(result, name)
+        if not isinstance(arr, np.ndarray):
+            raise InputTypeError(f"Result.{name} must be a numpy array, got {type(arr).__name__}")
+        kinds = "b" if name == "active" else "iuf"
+        if arr.dtype.kind not in kinds:
+            raise InputTypeError(f"Result.{name} has dtype {arr.dtype}, expected kind {kinds!r}")
         if arr.shape != (n,):
-            raise DataError(
-                f"{prefix}{name} must have one value per vertex, shape ({n},), got {arr.shape}"
+            raise DataError(f"Result.{name} must have shape ({n},), got {arr.shape}")
+        if name != "active" and not np.isfinite(arr).all():
+            raise NumericalError(
+                f"Result.{name} contains NaN or inf at {int((~np.isfinite(arr)).sum())} "
+                "vertices: the computation overflowed or broke down (data too large or "
+                "badly scaled?)"
             )
-        arr = np.array(arr, dtype=np.float64, order="C", copy=True)
-        if not np.isfinite(arr).all():
-            raise DataError(f"{prefix}{name} contains NaN or inf")
-        out.append(arr)
-    return out
+    if result.estimate is not None:
+        if not isinstance(result.estimate, Estimate):
+            raise InputTypeError(
+                f"Result.estimate must be an Estimate or None, got {type(result.estimate).__name__}"
+            )
+        m = mesh.n_triangles
+        for key, value in result.estimate.maps.items():
+            shape = np.shape(value)
+            if shape != (m,):
+                raise DataError(f"estimator map {key!r} must have shape ({m},), got {shape}")
 
 
 @dataclass
@@ -53,6 +126,16 @@ class Estimate:
 
     totals: dict = field(default_factory=dict)
     maps: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        from .errors import NumericalError
+
+        eta = self.totals.get("eta")
+        if eta is not None and not (isinstance(eta, numbers.Real) and math.isfinite(eta)):
+            raise NumericalError(
+                f"the error estimate eta = {eta!r} is not finite: the computation overflowed "
+                "(data or triple too large or badly scaled?)"
+            )
 
     @property
     def eta(self) -> float:
@@ -96,6 +179,13 @@ class Result:
     iterates : list of tuple or None
         With ``solve(..., keep_iterates=True)``: the triple ``(u1, u2, lam)``
         of every history row (not archived).
+
+    Raises
+    ------
+    NumericalError
+        On construction, when a nodal array holds NaN or inf: a result with
+        non-finite values is never returned (see :func:`check_result`, which
+        also checks types and shapes).
     """
 
     mesh: object
@@ -114,6 +204,9 @@ class Result:
     path: str = ""
     estimate: Estimate | None = None
     iterates: list | None = None
+
+    def __post_init__(self):
+        check_result(self)
 
     @property
     def gap(self) -> np.ndarray:

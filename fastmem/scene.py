@@ -14,12 +14,19 @@ import numbers
 import numpy as np
 
 from .assembly import DEFAULT_LOAD_DEGREE, assemble_load, assemble_stiffness, evaluate_callable
-from .errors import DataError, InputTypeError, ParameterError
+from .errors import DataError, InputTypeError, ParameterError, ReadOnlyError
 from .mesh import Mesh
 
 __all__ = ["Scene"]
 
 logger = logging.getLogger(__name__)
+
+
+#: Supported range of the tensions mu1, mu2 (each value).
+MU_RANGE = (1e-100, 1e100)
+
+#: Largest supported solution scale and contact-pressure scale (see :meth:`Scene.check_scale`).
+MAX_MAGNITUDE = 1e90
 
 
 def _is_real_scalar(x) -> bool:
@@ -31,29 +38,64 @@ def _is_real_scalar(x) -> bool:
 
 
 def _pair(value, name):
-    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
-        raise InputTypeError(
-            f"{name} must be a pair ({name}1, {name}2), got {type(value).__name__} {value!r:.80}"
+    message = f"{name} must be a pair ({name}1, {name}2), got {type(value).__name__} {value!r:.80}"
+    if isinstance(value, (str, bytes)):
+        raise InputTypeError(message)
+    try:
+        if len(value) != 2:
+            raise InputTypeError(message)
+        return value[0], value[1]
+    except InputTypeError:
+        raise
+    except Exception as exc:  # no len() (0-d arrays, iterators), dicts without keys 0 and 1
+        raise InputTypeError(message) from exc
+
+
+def _scalar(value, name, error) -> float:
+    """Return a real scalar as a Python float; refuse Python ints beyond the float64 range."""
+    try:
+        return float(value)
+    except OverflowError:
+        raise error(f"{name} = {value!r:.40} is beyond the float64 range") from None
+
+
+def _real_array(value, name, shape, what, error=DataError) -> np.ndarray:
+    """Convert once to a new read-only C-contiguous float64 array of ``shape``.
+
+    Dtype policy: any real numeric dtype and memory layout is accepted and copied (the
+    caller's array is never aliased nor modified); bool, complex, object and string arrays
+    and ragged sequences raise InputTypeError, a wrong shape or masked entries DataError,
+    naming ``name``.
+    """
+    if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
+        raise DataError(
+            f"{name} has {int(np.ma.count_masked(value))} masked entries; fill or remove them"
         )
-    return value[0], value[1]
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # ragged nested sequences and the like
+        raise InputTypeError(f"{name} cannot be converted to an array of numbers: {exc}") from exc
+    if arr.dtype.kind not in "iuf":
+        raise InputTypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
+    if arr.shape != shape:
+        raise error(f"{name} as an array must have {what}, shape {shape}, got {arr.shape}")
+    with np.errstate(over="ignore"):  # longdouble beyond float64: inf, refused by the callers
+        out = np.array(arr, dtype=np.float64, order="C", copy=True)
+    out.flags.writeable = False
+    return out
 
 
 def _check_mu(value, name, n_triangles):
+    lo, hi = MU_RANGE
     if _is_real_scalar(value):
-        v = float(value)
+        v = _scalar(value, name, ParameterError)
         if not np.isfinite(v) or v <= 0:
             raise ParameterError(f"{name} must be positive and finite, got {v!r}")
+        if not lo <= v <= hi:
+            raise ParameterError(f"{name} = {v:g} is outside the supported range [{lo:g}, {hi:g}]")
         return v
     if isinstance(value, (np.ndarray, list, tuple)):
-        arr = np.asarray(value)
-        if arr.dtype.kind not in "iuf":
-            raise InputTypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
-        arr = np.ascontiguousarray(arr, dtype=np.float64)
-        if arr.shape != (n_triangles,):
-            raise DataError(
-                f"{name} as an array must have one value per triangle, shape ({n_triangles},), "
-                f"got {arr.shape}"
-            )
+        arr = _real_array(value, name, (n_triangles,), "one value per triangle")
         bad = ~(np.isfinite(arr) & (arr > 0))
         if bad.any():
             k = int(np.flatnonzero(bad)[0])
@@ -61,9 +103,15 @@ def _check_mu(value, name, n_triangles):
                 f"{name} must be positive and finite on every triangle; "
                 f"{int(bad.sum())} values are not (first: triangle {k}, value {arr[k]!r})"
             )
+        out = (arr < lo) | (arr > hi)
+        if out.any():
+            k = int(np.flatnonzero(out)[0])
+            raise ParameterError(
+                f"{name} is outside the supported range [{lo:g}, {hi:g}] on {int(out.sum())} "
+                f"triangles (first: triangle {k}, value {arr[k]:g})"
+            )
         if (arr == arr[0]).all():
             return float(arr[0])
-        arr.flags.writeable = False
         return arr
     raise InputTypeError(
         f"{name} must be a positive number or an array of per-triangle values, "
@@ -75,30 +123,30 @@ def _check_load(value, name, n_vertices):
     if callable(value):
         return value
     if _is_real_scalar(value):
-        v = float(value)
+        v = _scalar(value, name, DataError)
         if not np.isfinite(v):
             raise DataError(f"{name} must be finite, got {v!r}")
         return v
     if isinstance(value, (np.ndarray, list, tuple)):
-        arr = np.asarray(value)
-        if arr.dtype.kind not in "iuf":
-            raise InputTypeError(f"{name} must be real numbers, got dtype {arr.dtype}")
-        arr = np.ascontiguousarray(arr, dtype=np.float64)
-        if arr.shape != (n_vertices,):
-            raise DataError(
-                f"{name} as an array must have one value per vertex, shape ({n_vertices},), "
-                f"got {arr.shape}"
-            )
+        arr = _real_array(value, name, (n_vertices,), "one value per vertex")
         if not np.isfinite(arr).all():
             raise DataError(
                 f"{name} contains NaN or inf at {int((~np.isfinite(arr)).sum())} vertices"
             )
-        arr.flags.writeable = False
         return arr
     raise InputTypeError(
         f"{name} must be a number, an array of per-vertex values or a callable f(x, y), "
         f"got {type(value).__name__}"
     )
+
+
+def _max_abs(value) -> float | None:
+    """Largest magnitude of constant or nodal data; None for a callable (not known yet)."""
+    if callable(value):
+        return None
+    if isinstance(value, np.ndarray):
+        return float(np.abs(value).max(initial=0.0))
+    return abs(float(value))
 
 
 def _describe(value):
@@ -131,6 +179,42 @@ class Scene:
     load_degree : int
         Quadrature degree for callable loads (default 5).
 
+    Raises
+    ------
+    InputTypeError
+        A datum of the wrong type or dtype (string, None, complex, bool,
+        object array, ragged list), naming the field.
+    ParameterError
+        A tension that is not positive and finite or is outside
+        ``MU_RANGE = [1e-100, 1e100]``; ``g < 0`` on the boundary; bad
+        ``active_c`` or ``load_degree``.
+    DataError
+        Arrays of the wrong length, NaN or inf in the data, a callable that
+        raises or returns values of the wrong shape or type, or data so large
+        that the solution would leave the float64 range (:meth:`check_scale`).
+
+    Notes
+    -----
+    Dtype policy: arrays (per-triangle ``mu``, per-vertex ``f`` and ``g``) may
+    have any real numeric dtype (float16/32/64, longdouble, any integer
+    width) and any memory layout (Fortran order, strided views, read-only);
+    each is converted **once** to a new read-only C-contiguous float64 array,
+    so the scene never aliases nor modifies the caller's arrays and gives the
+    same result as the float64 array of the same values.  Scalars may be any
+    real number (Python or numpy, int, float, Fraction).  Bool, complex,
+    object and string values or arrays are refused with InputTypeError;
+    masked arrays with masked entries with DataError.
+    Callables are evaluated on float64 arrays; their results are converted
+    to float64 (integers and bools included) and must be finite.
+
+    A Scene is immutable: assigning a public attribute raises
+    :class:`~fastmem.errors.ReadOnlyError` (it would bypass the validation and
+    leave cached matrices stale).
+
+    Validation is O(N + M) and vectorised.  Callable ``g`` is evaluated once,
+    here; callable loads when the load vectors are first needed
+    (:attr:`loads`), where the same checks apply.
+
     Examples
     --------
     >>> import fastmem as fm
@@ -152,6 +236,7 @@ class Scene:
         if not isinstance(mesh, Mesh):
             raise InputTypeError(f"mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
         self.mesh = mesh
+        self._cache: dict = {}
         mu1, mu2 = _pair(mu, "mu")
         self.mu1 = _check_mu(mu1, "mu1", mesh.n_triangles)
         self.mu2 = _check_mu(mu2, "mu2", mesh.n_triangles)
@@ -167,27 +252,31 @@ class Scene:
         if not 1 <= load_degree <= 30:
             raise ParameterError(f"load_degree must be in [1, 30], got {load_degree}")
         self.load_degree = int(load_degree)
-        self._cache: dict = {}
+        self.check_scale()
+        self._frozen = True
+
+    def __setattr__(self, name, value):
+        if not name.startswith("_") and getattr(self, "_frozen", False):
+            raise ReadOnlyError(
+                f"Scene.{name} cannot be assigned: a Scene is immutable (it was validated "
+                "and caches its matrices and load vectors); build a new Scene"
+            )
+        object.__setattr__(self, name, value)
 
     def _check_g(self, g):
         mesh = self.mesh
         bnd = mesh.boundary_vertices
         if callable(g):
             vals = evaluate_callable(g, mesh.vertices[bnd, 0], mesh.vertices[bnd, 1], "g")
+            stored = g
         elif _is_real_scalar(g):
-            vals = np.full(bnd.size, float(g))
-            if not np.isfinite(vals[0]):
-                raise DataError(f"g must be finite, got {float(g)!r}")
+            stored = _scalar(g, "g", DataError)
+            if not np.isfinite(stored):
+                raise DataError(f"g must be finite, got {stored!r}")
+            vals = np.full(bnd.size, stored)
         elif isinstance(g, (np.ndarray, list, tuple)):
-            arr = np.asarray(g)
-            if arr.dtype.kind not in "iuf":
-                raise InputTypeError(f"g must be real numbers, got dtype {arr.dtype}")
-            if arr.shape != (mesh.n_vertices,):
-                raise DataError(
-                    f"g as an array must have one value per vertex, shape ({mesh.n_vertices},), "
-                    f"got {arr.shape}"
-                )
-            vals = arr[bnd].astype(np.float64)
+            stored = _real_array(g, "g", (mesh.n_vertices,), "one value per vertex")
+            vals = stored[bnd]
             if not np.isfinite(vals).all():
                 raise DataError("g contains NaN or inf at boundary vertices")
         else:
@@ -200,7 +289,64 @@ class Scene:
                 f"g must be >= 0 on the boundary (membrane 1 above membrane 2 there), "
                 f"got {vals[k]!r} at vertex {int(bnd[k])}"
             )
-        return g if callable(g) or not _is_real_scalar(g) else float(g)
+        # The validated boundary values are the ones used: a callable is evaluated once.
+        out = np.zeros(mesh.n_vertices)
+        out[bnd] = vals
+        out.flags.writeable = False
+        self._cache["gB"] = out
+        return stored
+
+    def check_scale(self, fmax1: float | None = None, fmax2: float | None = None) -> None:
+        """Refuse data whose solution would leave the float64 range fastmem computes in.
+
+        With ``D`` the diameter of the bounding box and ``h`` the smallest triangle
+        height, the solution scale ``U = max|g| + D^2 max_i(max|f_i| / min mu_i)`` and
+        the pressure scale ``P = max_i max|f_i| + max_i(max mu_i) U / h^2`` must not
+        exceed ``MAX_MAGNITUDE = 1e90``: then every product the solver and the
+        estimators form (energies, squared residuals) stays finite.  Callable loads
+        enter once their load vectors are assembled (``fmax1``, ``fmax2``).
+
+        Raises
+        ------
+        DataError
+            Naming the datum that dominates the offending scale.
+        """
+        mesh = self.mesh
+        fmax = [
+            _max_abs(self.f1) if fmax1 is None else fmax1,
+            _max_abs(self.f2) if fmax2 is None else fmax2,
+        ]
+        fmax = [0.0 if f is None else f for f in fmax]
+        gmax = float(self.boundary_values.max(initial=0.0))
+        mu_min = (float(np.min(self.mu1)), float(np.min(self.mu2)))
+        mu_max = (float(np.max(self.mu1)), float(np.max(self.mu2)))
+        x0, x1, y0, y1 = mesh.bounding_box
+        d2 = (x1 - x0) ** 2 + (y1 - y0) ** 2
+        h = mesh.min_height
+        terms = {"g": gmax, "f1": d2 * fmax[0] / mu_min[0], "f2": d2 * fmax[1] / mu_min[1]}
+        u_scale = sum(terms.values())
+        if not u_scale <= MAX_MAGNITUDE:
+            worst = max(terms, key=terms.get)
+            raise DataError(
+                f"data out of the supported range: the solution scale max|g| + "
+                f"diam^2 max|f_i|/min mu_i = {u_scale:.3g} (dominated by {worst}) exceeds "
+                f"{MAX_MAGNITUDE:g}; rescale the problem (fastmem computes in float64)"
+            )
+        terms = {
+            "f1": fmax[0],
+            "f2": fmax[1],
+            "mu1": mu_max[0] * u_scale / (h * h),
+            "mu2": mu_max[1] * u_scale / (h * h),
+        }
+        p_scale = max(fmax) + max(terms["mu1"], terms["mu2"])
+        if not p_scale <= MAX_MAGNITUDE:
+            worst = max(terms, key=terms.get)
+            raise DataError(
+                f"data out of the supported range: the contact pressure scale max|f_i| + "
+                f"max mu_i U / h^2 = {p_scale:.3g} (dominated by {worst}; solution scale "
+                f"U = {u_scale:.3g}, smallest triangle height h = {h:.3g}) exceeds "
+                f"{MAX_MAGNITUDE:g}; rescale the problem (fastmem computes in float64)"
+            )
 
     # ----------------------------------------------------------------- derived
     @property
@@ -233,31 +379,40 @@ class Scene:
 
     @property
     def loads(self) -> tuple[np.ndarray, np.ndarray]:
-        """Load vectors ``(F1, F2)`` with ``F_i,a = (f_i, psi_a)``, assembled once."""
+        """Load vectors ``(F1, F2)`` with ``F_i,a = (f_i, psi_a)``, assembled once.
+
+        Callable loads are evaluated here (DataError if one raises or returns values of
+        the wrong shape, type, or non-finite values) and then pass :meth:`check_scale`.
+        """
         if "F" not in self._cache:
-            self._cache["F"] = tuple(
+            loads = tuple(
                 assemble_load(self.mesh, f, self.load_degree, name)
                 for f, name in ((self.f1, "f1"), (self.f2, "f2"))
             )
+            for vec, name in zip(loads, ("f1", "f2"), strict=True):
+                if not np.isfinite(vec).all():
+                    raise DataError(
+                        f"the load vector of {name} overflows float64 "
+                        f"({int((~np.isfinite(vec)).sum())} NaN or inf entries): {name} is "
+                        "too large; rescale the problem"
+                    )
+            if callable(self.f1) or callable(self.f2):
+                # nodal averages (f, psi_a) / |psi_a| bound the size of a callable load
+                b = self.mesh.lumped_mass
+                fmax = [
+                    float(np.max(np.abs(vec) / b)) if callable(f) else None
+                    for vec, f in zip(loads, (self.f1, self.f2), strict=True)
+                ]
+                self.check_scale(*fmax)
+            self._cache["F"] = loads
         return self._cache["F"]
 
     @property
     def boundary_values(self) -> np.ndarray:
-        """Nodal vector of g on boundary vertices (zero elsewhere), shape (N,)."""
-        if "gB" not in self._cache:
-            mesh = self.mesh
-            out = np.zeros(mesh.n_vertices)
-            bnd = mesh.boundary_vertices
-            if callable(self.g):
-                out[bnd] = evaluate_callable(
-                    self.g, mesh.vertices[bnd, 0], mesh.vertices[bnd, 1], "g"
-                )
-            elif isinstance(self.g, float):
-                out[bnd] = self.g
-            else:
-                out[bnd] = np.asarray(self.g, dtype=np.float64)[bnd]
-            out.flags.writeable = False
-            self._cache["gB"] = out
+        """Nodal vector of g on boundary vertices (zero elsewhere), shape (N,), read-only.
+
+        Computed once, on construction, from the validated values of g.
+        """
         return self._cache["gB"]
 
     def data_kind(self, name: str) -> str:
