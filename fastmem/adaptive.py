@@ -49,7 +49,7 @@ import scipy.sparse as sp
 
 from .amg import PCG, amg_preconditioner
 from .bound import evaluate
-from .errors import CyclingError
+from .errors import CyclingError, NumericalError
 from .estimators import combine, global_terms, local_terms
 from .linear import DecoupledStep, GeneralStep, residuals
 from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
@@ -154,8 +154,8 @@ class _GeneralInner:
         self.cg = PCG(self.mat, rhs, x0, self.pre)
 
     def iterate(self, budget, s_share):
-        self.cg.step()
-        return 1
+        """One CG iteration; returns 0 when CG cannot proceed (at round-off)."""
+        return 1 if self.cg.step() else 0
 
     def solve_exact(self):
         return self.cg.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
@@ -165,11 +165,14 @@ class _GeneralInner:
         return self.cg.iterations
 
     def at_roundoff(self):
-        return self.cg.relative_residual <= EXACT_AMG_RTOL
+        return self.cg.at_roundoff(EXACT_AMG_RTOL)
 
     def residual(self):
         """Relative CG residual, the predictor of eta_alg between checks."""
         return self.cg.relative_residual
+
+    def true_relative_residual(self):
+        return self.cg.true_residual_norm() / self.cg.b_norm
 
     def triple(self):
         return self.step.triple(self.active, self.p @ self.cg.x)
@@ -222,15 +225,22 @@ class _DecoupledInner:
         return z
 
     def iterate(self, budget, s_share):
-        """One CG iteration on w, and one on s while s holds over half the budget."""
-        self.cg_w.step()
-        if self.s_done or s_share <= 0.5 * budget:
-            return 1
+        """One CG iteration on w, and one on s while s holds over half the budget.
+
+        Returns the number of CG iterations done: 0 when neither CG can proceed.
+        """
+        done = 1 if self.cg_w.step() else 0
+        if self.s_done or (done and s_share <= 0.5 * budget):
+            return done
         if self.cg_s.relative_residual <= EXACT_AMG_RTOL:
-            self.s_done = True
-            return 1
-        self.cg_s.step()
-        return 2
+            if self.cg_s.at_roundoff(EXACT_AMG_RTOL):
+                self.s_done = True
+                return done
+            self.cg_s.restart()  # the recursive residual drifted: replace it
+        if self.cg_s.step():
+            return done + 1
+        self.s_done = True  # stuck: at round-off
+        return done
 
     def solve_exact(self):
         n = 0
@@ -244,11 +254,15 @@ class _DecoupledInner:
         return self.cg_w.iterations
 
     def at_roundoff(self):
-        return max(self.cg_w.relative_residual, self.cg_s.relative_residual) <= EXACT_AMG_RTOL
+        s_ok = self.s_done or self.cg_s.at_roundoff(EXACT_AMG_RTOL)
+        return s_ok and self.cg_w.at_roundoff(EXACT_AMG_RTOL)
 
     def residual(self):
         """Relative CG residual of the gap, the predictor of eta_alg between checks."""
         return self.cg_w.relative_residual
+
+    def true_relative_residual(self):
+        return max(cg.true_residual_norm() / cg.b_norm for cg in (self.cg_s, self.cg_w))
 
     def s_full(self):
         return self.step._full(self.cg_s.x, self.step.s_boundary)
@@ -276,7 +290,7 @@ def _skip_check(last_check, i, inner, budget, options):
     if last_check is None or options.full_history or i >= options.max_inner:
         return False
     i_c, eta_c, res_c = last_check
-    if i - i_c >= MAX_SKIP or res_c <= 0.0 or inner.at_roundoff():
+    if i - i_c >= MAX_SKIP or res_c <= 0.0 or inner.residual() <= EXACT_AMG_RTOL:
         return False
     return eta_c * inner.residual() / res_c > SKIP_MARGIN * budget
 
@@ -379,6 +393,7 @@ def newton_amg(
     seen = {}
     tracker = [math.inf, 0]
     guard = new_safeguard_record()
+    hit_max = 0  # consecutive Newton steps whose inner solve reached max_inner
     k = 0
     while k < max_newton:
         k += 1
@@ -464,8 +479,15 @@ def newton_amg(
             last = (u1, u2, lam, r1, r2, est, local, glob)
             new_active = lam[interior] > c * (u1[interior] - u2[interior])
             if np.array_equal(new_active, active):
-                converged = True
-                reason = "active set settled"
+                if inner.at_roundoff():
+                    converged = True
+                    reason = "active set settled"
+                else:
+                    reason = (
+                        "active set settled, but CG stopped above round-off (true "
+                        f"residual {inner.true_relative_residual():.1e} relative): the "
+                        "linear steps are not exact (ill-conditioned system)"
+                    )
                 break
             active = new_active
             continue
@@ -476,11 +498,13 @@ def newton_amg(
         s_share = math.inf
         last_check = None  # (i, eta_alg, CG residual) at the last check of this step
         while True:
-            inner_total += inner.iterate(budget, s_share)
+            done = inner.iterate(budget, s_share)
+            inner_total += done
             i = inner.iterations - i0
-            if i % options.check_every and i < options.max_inner:
+            stuck = done == 0  # CG cannot proceed: check now, the solve is at round-off
+            if not stuck and i % options.check_every and i < options.max_inner:
                 continue
-            if _skip_check(last_check, i, inner, budget, options):
+            if not stuck and _skip_check(last_check, i, inner, budget, options):
                 stats["skipped_checks"] += 1
                 continue
             stats["checks"] += 1
@@ -490,11 +514,18 @@ def newton_amg(
             if decoupled:
                 s_share = inner.s_share(mass, c_f)
             eta_lin, eta_alg = vals["eta_lin"], vals["eta_alg"]
+            if not (math.isfinite(eta_lin) and math.isfinite(eta_alg)):
+                raise NumericalError(
+                    f"{method} Newton-min step {k} on level {level}: the estimators are not "
+                    f"finite (eta_lin = {eta_lin}, eta_alg = {eta_alg}); the data are "
+                    "probably beyond what float64 resolves (check mu, f and g)"
+                )
+            roundoff = stuck or inner.at_roundoff()
             last_check = (i, eta_alg, inner.residual())
             est = None
             want_fresh = options.full_history or disc_known is None
             if not want_fresh and certify:
-                cand_inner = eta_alg <= g_alg * max(disc_known, eta_lin)
+                cand_inner = roundoff or eta_alg <= g_alg * max(disc_known, eta_lin)
                 cand_outer = eta_lin <= g_lin * disc_known
                 want_fresh = cand_inner and cand_outer
             disc = disc_known
@@ -503,7 +534,7 @@ def newton_amg(
                 disc = disc_known = est.totals["eta_disc"]
             budget = g_alg * max(disc, eta_lin)
             # a solve at round-off meets the criterion even when eta_disc = eta_lin = 0
-            inner_ok = eta_alg <= budget or inner.at_roundoff()
+            inner_ok = eta_alg <= budget or roundoff
             outer_ok = (est is not None or not certify) and inner_ok and eta_lin <= g_lin * disc
             record(
                 k,
@@ -531,6 +562,13 @@ def newton_amg(
         if outer_ok:
             converged = True
             reason = "estimator criteria met"
+            break
+        hit_max = hit_max + 1 if i >= options.max_inner else 0
+        if hit_max >= 2:
+            reason = (
+                f"two consecutive Newton steps reached max_inner = {options.max_inner} CG "
+                "iterations without meeting the algebraic criterion (ill-conditioned system?)"
+            )
             break
         active = lam[interior] > c * (u1[interior] - u2[interior])
     else:

@@ -34,12 +34,37 @@ AMG_DEFAULTS = {
 }
 
 
+#: Keys accepted in ``amg_options``: the cycle type and the keyword arguments of
+#: ``pyamg.smoothed_aggregation_solver`` that configure the hierarchy.
+_AMG_KEYS = frozenset(
+    {
+        "cycle",
+        "B",
+        "BH",
+        "symmetry",
+        "strength",
+        "aggregate",
+        "smooth",
+        "presmoother",
+        "postsmoother",
+        "improve_candidates",
+        "max_levels",
+        "max_coarse",
+        "diagonal_dominance",
+        "keep",
+    }
+)
+
+
 def check_amg_options(options) -> dict:
     """Merge user AMG options with :data:`AMG_DEFAULTS`; refuse non-dict input."""
     if options is None:
         return dict(AMG_DEFAULTS)
     if not isinstance(options, dict):
         raise ParameterError(f"amg_options must be a dict of pyamg options, got {options!r}")
+    unknown = sorted(str(k) for k in options if k not in _AMG_KEYS)
+    if unknown:
+        raise ParameterError(f"amg_options has unknown keys {unknown}; known: {sorted(_AMG_KEYS)}")
     out = dict(AMG_DEFAULTS)
     out.update(options)
     if out["cycle"] not in ("V", "W", "F"):
@@ -83,6 +108,24 @@ def amg_preconditioner(matrix, options: dict | None = None) -> AMGPreconditioner
 class PCG:
     """Preconditioned conjugate gradient for ``A x = b``, advanced one iteration at a time.
 
+    Robustness (the stress suite, issue 6): the recursively updated residual
+    of CG drifts away from the true one ``b - A x`` on ill-conditioned systems
+    (contrast 1e12 in the coefficients), and it can reach exactly zero (or
+    underflow) while the true residual cannot; both used to freeze the
+    iteration.  Hence:
+
+    - a start ``x0`` whose residual exceeds ``||b||`` is replaced by zero (a
+      wild initial guess, e.g. ``1e80``, would otherwise need a reduction far
+      beyond what the iteration budget allows);
+    - on breakdown (``r.z <= 0`` or ``p.Ap <= 0``) the iteration is restarted
+      once from the true residual; a second breakdown without progress sets
+      :attr:`stuck`, and :meth:`step` returns False from then on;
+    - :meth:`solve` stops on the recursive residual, then verifies the true
+      one and restarts from it (residual replacement) while that still
+      helps;
+    - :meth:`at_roundoff` compares the true residual with what float64 can
+      attain, ``||b - A x|| <~ eps (||A|| |x| + |b|)``.
+
     Parameters
     ----------
     matrix : sparse matrix
@@ -99,19 +142,42 @@ class PCG:
         Current iterate.
     iterations : int
         Iterations done so far.
+    stuck : bool
+        True when the iteration broke down from a freshly computed true residual
+        (nothing more can be gained by iterating).
+    restarts : int
+        Restarts from the true residual so far.
     """
+
+    #: Residual replacements :meth:`solve` tries before it accepts the true residual.
+    MAX_REPLACEMENTS = 8
 
     def __init__(self, matrix, rhs, x0, precond):
         self.a = matrix
         self.b = rhs
         self.m = precond
-        self.x = np.array(x0, dtype=np.float64, copy=True)
-        self.r = rhs - matrix @ self.x
         self.b_norm = float(np.linalg.norm(rhs)) or 1.0
-        self.z = precond(self.r)
+        self.x = np.array(x0, dtype=np.float64, copy=True)
+        self.iterations = 0
+        self.restarts = 0
+        self.stuck = False
+        self._abs_a = None
+        self._true = None  # (iterations, true residual norm) cache
+        self.restart()
+        if self.residual_norm > 1e3 * self.b_norm and np.any(self.x):
+            self.x[:] = 0.0
+            self.restart()
+        self.restarts = 0
+
+    def restart(self):
+        """Recompute the residual from ``x`` and restart the search direction."""
+        self.r = self.b - self.a @ self.x
+        self.z = self.m(self.r)
         self.p = self.z.copy()
         self.rz = float(self.r @ self.z)
-        self.iterations = 0
+        self.restarts += 1
+        self._fresh = True
+        self._true = (self.iterations, float(np.linalg.norm(self.r)))
 
     @property
     def residual_norm(self) -> float:
@@ -120,17 +186,46 @@ class PCG:
 
     @property
     def relative_residual(self) -> float:
-        """``||b - A x|| / ||b||``."""
+        """``||r|| / ||b||`` with the recursively updated residual."""
         return self.residual_norm / self.b_norm
 
-    def step(self) -> bool:
-        """One CG iteration.  Returns False when the iteration cannot proceed (breakdown)."""
-        if self.rz <= 0.0 or not np.isfinite(self.rz):
+    def true_residual_norm(self) -> float:
+        """``||b - A x||`` recomputed (one product with A, cached per iteration)."""
+        if self._true is None or self._true[0] != self.iterations:
+            self._true = (self.iterations, float(np.linalg.norm(self.b - self.a @ self.x)))
+        return self._true[1]
+
+    def attainable(self) -> float:
+        """Smallest residual norm float64 can resolve here: ``64 eps ||(|A| |x| + |b|)||``."""
+        if self._abs_a is None:
+            self._abs_a = abs(self.a)
+        scale = self._abs_a @ np.abs(self.x) + np.abs(self.b)
+        return 64.0 * np.finfo(np.float64).eps * float(np.linalg.norm(scale))
+
+    def at_roundoff(self, rtol: float) -> bool:
+        """Return True at the true residual ``rtol ||b||`` or the attainable level, or if stuck."""
+        if self.stuck:
+            return True
+        res = self.true_residual_norm()
+        return res <= rtol * self.b_norm or res <= self.attainable()
+
+    def _breakdown(self) -> bool:
+        if self._fresh:  # already restarted from the true residual: nothing to gain
+            self.stuck = True
             return False
+        self.restart()
+        return self.step()
+
+    def step(self) -> bool:
+        """One CG iteration.  Returns False when the iteration cannot proceed (:attr:`stuck`)."""
+        if self.stuck:
+            return False
+        if self.rz <= 0.0 or not np.isfinite(self.rz):
+            return self._breakdown()
         ap = self.a @ self.p
         pap = float(self.p @ ap)
         if pap <= 0.0 or not np.isfinite(pap):
-            return False
+            return self._breakdown()
         alpha = self.rz / pap
         self.x += alpha * self.p
         self.r -= alpha * ap
@@ -141,13 +236,25 @@ class PCG:
         self.p *= beta
         self.p += self.z
         self.iterations += 1
+        self._fresh = False
         return True
 
     def solve(self, rtol: float, maxiter: int) -> int:
-        """Iterate until ``||r|| <= rtol ||b||`` or ``maxiter`` iterations; return the count."""
+        """Iterate until ``||b - A x|| <= rtol ||b||`` (true residual) or round-off.
+
+        Stops after ``maxiter`` iterations at most; returns the count.
+        """
         start = self.iterations
         target = rtol * self.b_norm
-        while self.iterations - start < maxiter and self.residual_norm > target:
-            if not self.step():
+        replaced = 0
+        while self.iterations - start < maxiter and not self.stuck:
+            if self.residual_norm > target:
+                if not self.step():
+                    break
+                continue
+            true = self.true_residual_norm()
+            if true <= target or true <= self.attainable() or replaced >= self.MAX_REPLACEMENTS:
                 break
+            replaced += 1
+            self.restart()
         return self.iterations - start

@@ -48,7 +48,7 @@ METHODS = ("inexact", "exact-amg", "exact")
 #: overestimate costs one flux reconstruction more, an underestimate a CG iteration or two.
 HINT_SAFETY = 0.7
 
-#: Relative residual ||R|| / ||(F1, F2, B lam)|| expected of an exact solve at convergence.
+#: Relative residual (:func:`_relative_residual`) expected of an exact solve at convergence.
 ROUNDOFF_TOL = 1e-9
 
 #: Columns of the per-step history of an exact Newton-min solve.
@@ -211,8 +211,11 @@ def solve(
     _check_positive("gamma_alg", gamma_alg)
     _check_positive("gamma_lin", gamma_lin)
     _check_positive("amg_reuse", amg_reuse, allow_zero=True)
-    if nested not in (True, False, "auto"):
+    if monitor is not None and not callable(monitor):
+        raise InputTypeError(f"monitor must be a callable taking one row, got {monitor!r}")
+    if not (isinstance(nested, (bool, np.bool_)) or (isinstance(nested, str) and nested == "auto")):
         raise ParameterError(f"nested must be True, False or 'auto', got {nested!r}")
+    nested = nested if isinstance(nested, str) else bool(nested)
     amg_opts = check_amg_options(amg_options)
     if path not in ("auto", "general", "decoupled"):
         raise ParameterError(f"path must be 'auto', 'general' or 'decoupled', got {path!r}")
@@ -377,6 +380,21 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
     return result
 
 
+def _relative_residual(scene, u1, u2, lam, r1, r2) -> float:
+    """``|(R1, R2)|`` relative to the size of the terms it is computed from.
+
+    The scale is ``|(|A1| |u1| + |F1| + |B lam|, |A2| |u2| + |F2| + |B lam|)|``: round-off
+    in ``R_i = F_i - A_i u_i -/+ B lam`` is relative to the terms, not to the loads alone
+    (with ``F = 0`` and ``g > 0`` the loads vanish but ``A1 u1`` does not).
+    """
+    f1, f2 = scene.loads
+    bl = np.abs(scene.mesh.lumped_mass * lam)
+    t1 = abs(scene.weighted_stiffness(1)) @ np.abs(u1) + np.abs(f1) + bl
+    t2 = abs(scene.weighted_stiffness(2)) @ np.abs(u2) + np.abs(f2) + bl
+    scale = float(np.sqrt(t1 @ t1 + t2 @ t2)) + np.finfo(float).tiny
+    return float(np.sqrt(r1 @ r1 + r2 @ r2)) / scale
+
+
 def _newton(scene, step, method, max_newton, init, monitor, timings, use_safeguard=True):
     mesh = scene.mesh
     interior = mesh.interior_vertices
@@ -477,10 +495,7 @@ def _newton(scene, step, method, max_newton, init, monitor, timings, use_safegua
         seen[key] = k
         active = new_active
     timings["solve"] = time.perf_counter() - t_solve
-    f1, f2 = scene.loads
-    b = mesh.lumped_mass
-    scale = np.sqrt(f1 @ f1 + f2 @ f2 + 2 * (b * lam) @ (b * lam)) + np.finfo(float).tiny
-    res_rel = float(np.sqrt(r1 @ r1 + r2 @ r2) / scale)
+    res_rel = _relative_residual(scene, u1, u2, lam, r1, r2)
     if converged and res_rel > ROUNDOFF_TOL:
         logger.warning(
             "Newton-min: the active set settled but the relative residual is %.2e, above "
