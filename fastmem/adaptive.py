@@ -407,7 +407,7 @@ def newton_amg(
         if changed and k > 2:
             gap = (u1 - u2)[interior]
             merit = float(np.linalg.norm(np.minimum(gap, lam[interior])))
-            stalled = merit_stalled(tracker, merit)
+            stalled = merit_stalled(tracker, merit, inner.active, active)
         if cycles and not options.safeguard:
             raise CyclingError(
                 f"{method} Newton-min cycles on level {level}: the active set of step {k} "

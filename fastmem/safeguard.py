@@ -208,14 +208,24 @@ def monotone_active_set(scene, face_solve, u1, u2, max_steps, on_step=None):
     return SafeguardOutcome(z1, z2, lam, active, converged, step, energies)
 
 
-def merit_stalled(tracker, merit) -> bool:
+def merit_stalled(tracker, merit, old_active=None, new_active=None) -> bool:
     """Update ``tracker = [best, steps_since_best]`` with ``merit``; True after a stall.
 
-    A stall is :data:`STALL_STEPS` consecutive Newton-min steps without a new
-    smallest ``||min(gap, lam)||``.
+    A stall is :data:`STALL_STEPS` consecutive Newton-min steps without
+    progress.  Progress is a new smallest ``||min(gap, lam)||``, or (when the
+    active sets are given) a monotone change of the active set (the new set
+    strictly contains, or is strictly contained in, the old one): a contact
+    front that moves one cell per step does not reduce the merit function
+    but cannot cycle either (the stress case "criss-cross crawl" at aspect
+    ratio 128 triggered the safeguard needlessly before this rule).
     """
-    if merit < tracker[0]:
-        tracker[0], tracker[1] = merit, 0
+    monotone = False
+    if old_active is not None and new_active is not None:
+        grew = np.all(new_active >= old_active)
+        shrank = np.all(new_active <= old_active)
+        monotone = bool(grew or shrank) and not np.array_equal(old_active, new_active)
+    if merit < tracker[0] or monotone:
+        tracker[0], tracker[1] = min(merit, tracker[0]), 0
     else:
         tracker[1] += 1
     return tracker[1] >= STALL_STEPS

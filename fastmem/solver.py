@@ -467,7 +467,7 @@ def _newton(scene, step, method, max_newton, init, monitor, timings, use_safegua
             break
         key = _active_key(new_active)
         # the first step starts from the unconstrained solution: its merit is no reference
-        stalled = k > 1 and merit_stalled(tracker, row["comp_norm"])
+        stalled = k > 1 and merit_stalled(tracker, row["comp_norm"], active, new_active)
         cycles = key in seen
         if (cycles or stalled) and use_safeguard and k < max_newton:
             trigger = "cycle" if cycles else "stall"
