@@ -5,10 +5,9 @@ into CSR, the once-per-mesh pattern and position map, and reports Numba
 compilation separately (a fresh process with an empty cache, and one with a
 warm cache).  Checks that both codes assemble the same matrix.
 
-    python -m bench.assembly [--quick] [--sizes 256 1024 2048]
+    python -m bench.assembly [--quick] [--sizes 256 1024 2048] [--results DIR]
 """
 
-import argparse
 import os
 import subprocess
 import sys
@@ -17,7 +16,7 @@ import time
 
 import numpy as np
 
-from bench._common import peak_rss_mb, progress, timed, write_json
+from bench._common import finish, parse, parser, peak_rss_mb, progress, timed
 
 _COMPILE_SNIPPET = """
 import time
@@ -139,20 +138,19 @@ def run(sizes, repeat):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="tiny sizes, seconds")
-    p.add_argument("--sizes", type=int, nargs="*", default=None)
-    p.add_argument("--repeat", type=int, default=3)
-    args = p.parse_args(argv)
+    p = parser(__doc__)
+    p.add_argument(
+        "--no-compile", action="store_true", help="skip the cold/warm-cache compile measurement"
+    )
+    args = parse(p, argv)
     sizes = args.sizes or ([16, 32] if args.quick else [256, 1024, 2048])
     repeat = 1 if args.quick else args.repeat
     payload = {
         "parameters": {"sizes": sizes, "repeat": repeat, "quick": args.quick},
-        "compile": compile_times(),
+        "compile": None if args.no_compile else compile_times(),
         "rows": run(sizes, repeat),
     }
-    path = write_json("assembly_quick" if args.quick else "assembly", payload)
-    progress(f"wrote {path}")
+    finish("assembly", payload, args.quick)
 
 
 if __name__ == "__main__":

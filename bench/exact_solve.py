@@ -1,21 +1,25 @@
 """Exact Newton-min on the default scene and the manufactured solution (sparse direct solves).
 
 Reports Newton steps, factorisations, seconds per phase and, for the
-manufactured solution, the energy error, for both linear-step paths.
+manufactured solution, the energy error, for both linear-step paths, and
+checks that the two paths give the same solution.
 
     python -m bench.exact_solve [--quick] [--sizes 32 64 128 256 512] [--general-max 256]
 """
 
-import argparse
 import time
 
-from bench._common import peak_rss_mb, progress, write_json
+import numpy as np
+
+from bench._common import finish, parse, parser, peak_rss_mb, progress
 
 
 def run(sizes, general_max):
     import fastmem as fm
 
     ms = fm.Manufactured()
+    for path in ("decoupled", "general"):  # load the JIT caches outside the timings
+        fm.solve(ms.scene(fm.Mesh.square(4)), method="exact", path=path)
     rows = []
     for n in sizes:
         mesh = fm.Mesh.square(n)
@@ -28,7 +32,7 @@ def run(sizes, general_max):
                 else:
                     scene = ms.scene(mesh)
                 t0 = time.perf_counter()
-                r = fm.solve(scene, path=path)
+                r = fm.solve(scene, method="exact", path=path)
                 wall = time.perf_counter() - t0
                 row = {
                     "n": n,
@@ -43,6 +47,13 @@ def run(sizes, general_max):
                     "timings": r.timings,
                     "final_res_norm": float(r.history["res_norm"][-1]),
                 }
+                if path == "decoupled":
+                    ref = r
+                else:  # with exact solves both paths give the same iterates (MATH.md 3.3)
+                    row["max_abs_diff_u_vs_decoupled"] = float(
+                        max(np.abs(r.u1 - ref.u1).max(), np.abs(r.u2 - ref.u2).max())
+                    )
+                    row["max_abs_diff_lam_vs_decoupled"] = float(np.abs(r.lam - ref.lam).max())
                 if scene_name == "manufactured":
                     row["energy_error"] = ms.energy_error(mesh, r.u1, r.u2)
                     row["error_quadrature_degree"] = 7
@@ -57,18 +68,15 @@ def run(sizes, general_max):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--sizes", type=int, nargs="*", default=None)
+    p = parser(__doc__)
     p.add_argument("--general-max", type=int, default=256)
-    args = p.parse_args(argv)
+    args = parse(p, argv)
     sizes = args.sizes or ([8, 16] if args.quick else [32, 64, 128, 256, 512])
     payload = {
-        "parameters": {"sizes": sizes, "general_max": args.general_max},
+        "parameters": {"sizes": sizes, "general_max": args.general_max, "quick": args.quick},
         "rows": run(sizes, args.general_max),
     }
-    path = write_json("exact_solve_quick" if args.quick else "exact_solve", payload)
-    progress(f"wrote {path}")
+    finish("exact_solve", payload, args.quick)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,360 @@
+"""Fill the README "Performance" section (bench/PERFORMANCE.md) from the result JSON files.
+
+Every ``{placeholder}`` of the template whose value can be computed from
+``<results>/<name>.json`` is replaced; the others stay as they are, so a
+missing full run is visible.  ``--quick`` reads the ``*_quick.json`` files
+instead (for checking the machinery, not for publishing).  ``--figures``
+redraws every PNG from its JSON.
+
+    python -m bench.report [--quick] [--results DIR] [--figures] [--missing]
+"""
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+
+from bench._common import result_name, results_dir
+
+TEMPLATE = Path(__file__).resolve().parent / "PERFORMANCE.md"
+
+#: Benchmarks in the order ``python -m bench`` runs them.
+BENCHMARKS = (
+    "assembly",
+    "poisson_unit",
+    "exact_solve",
+    "contact_solve",
+    "estimate",
+    "work_precision",
+    "scaling",
+    "threads",
+)
+
+
+def load(name, quick=False, folder=None):
+    """The payload of ``<folder>/<name>[_quick].json``, or None."""
+    path = Path(folder or results_dir()) / f"{result_name(name, quick)}.json"
+    if not path.exists():
+        return None
+    return json.loads(path.read_text())
+
+
+def _med(v):
+    return v["median"] if isinstance(v, dict) else v
+
+
+def _count(x):
+    """4198401 -> '4.2M', 131072 -> '131k'."""
+    if x >= 1e6:
+        return f"{x / 1e6:.1f}M"
+    if x >= 1e3:
+        return f"{x / 1e3:.0f}k"
+    return str(int(x))
+
+
+def _x(r):
+    return f"{r:.0f}" if r >= 10 else f"{r:.1f}"
+
+
+def _largest(rows, **match):
+    sub = [r for r in rows if all(r.get(k) == v for k, v in match.items())]
+    return max(sub, key=lambda r: r["n"]) if sub else None
+
+
+def _at(rows, n, **match):
+    return next(
+        (r for r in rows if r["n"] == n and all(r.get(k) == v for k, v in match.items())), None
+    )
+
+
+# ------------------------------------------------------------------ per benchmark values
+
+
+def _assembly(d, v):
+    rows = [r for r in d["rows"] if "skfem_s" in r]
+    if not rows:
+        return
+    big = max(rows, key=lambda r: r["n"])
+    v["assembly_n"] = big["n"]
+    v["assembly_triangles"] = _count(big["triangles"])
+    v["assembly_ratio"] = _x(big["ratio_skfem_over_fastmem"])
+    v["assembly_mtris"] = f"{big['triangles'] / _med(big['assemble_stiffness_fused_s']) / 1e6:.0f}"
+    v["skfem_mtris"] = f"{big['triangles'] / _med(big['skfem_s']) / 1e6:.1f}"
+    v["tocsr_ratio"] = _x(_med(big["scipy_tocsr_s"]) / _med(big["coo_to_csr_gather_s"]))
+    v["assembly_max_diff"] = f"{max(r['max_abs_diff_vs_skfem'] for r in rows):.1e}"
+    v["assembly_ratio_range"] = (
+        f"{_x(min(r['ratio_skfem_over_fastmem'] for r in rows))}–"
+        f"{_x(max(r['ratio_skfem_over_fastmem'] for r in rows))}"
+    )
+    for r in rows:
+        v[f"assembly_ratio_{_count(r['triangles'])}"] = _x(r["ratio_skfem_over_fastmem"])
+    comp = d.get("compile") or {}
+    if comp:
+        v["compile_cold_s"] = f"{comp['cold_cache']['first_calls_s']:.1f}"
+        v["compile_warm_s"] = f"{comp['warm_cache']['first_calls_s']:.2f}"
+
+
+def _poisson(d, v):
+    big = max(d["rows"], key=lambda r: r["n"])
+    v["poisson_n"] = big["n"]
+    v["poisson_unknowns"] = _count(big["unknowns"])
+    v["poisson_s"] = f"{big['seconds']:.2f}"
+    v["poisson_its"] = big["iterations"]
+    v["poisson_setup_pct"] = f"{100 * big['setup_s']['median'] / big['seconds']:.0f}"
+    v["poisson_peak_mb"] = f"{big['peak_rss_mb']:.0f}"
+    ex = d.get("exponents", {}).get("total")
+    if ex is not None:
+        v["poisson_exp"] = f"{ex:.2f}"
+    v["poisson_its_range"] = (
+        f"{min(r['iterations'] for r in d['rows'])}–{max(r['iterations'] for r in d['rows'])}"
+    )
+
+
+def _contact(d, v):
+    rows = d["rows"]
+
+    def key(r, nested="auto", path="decoupled"):
+        return r.get("nested") == nested and r.get("path", "decoupled") == path
+
+    for scene, tag in (("default", ""), ("manufactured", "_mms")):
+        inex = [r for r in rows if r["scene"] == scene and r["method"] == "inexact" and key(r)]
+        amg = [r for r in rows if r["scene"] == scene and r["method"] == "exact-amg" and key(r)]
+        if inex:
+            big = max(inex, key=lambda r: r["n"])
+            v["contact_n"] = big["n"]
+            v["contact_vertices"] = _count(big["vertices"])
+            v[f"contact_inexact_pu{tag}"] = _x(big["poisson_units"])
+            v[f"contact_inexact_steps{tag}"] = big["newton_total"]
+            other = _at(amg, big["n"])
+            if other:
+                v[f"contact_exact_amg_pu{tag}"] = _x(other["poisson_units"])
+            if "energy_error" in big:
+                v["contact_effectivity_mms"] = f"{big['effectivity']:.2f}"
+    gen = [
+        r
+        for r in rows
+        if r["scene"] == "default" and r["method"] == "inexact" and key(r, path="general")
+    ]
+    if gen:
+        g = max(gen, key=lambda r: r["n"])
+        dec = _at(rows, g["n"], scene="default", method="inexact", nested="auto", path="decoupled")
+        if dec:
+            v["general_n"] = g["n"]
+            v["general_over_decoupled"] = f"{g['seconds'] / dec['seconds']:.1f}"
+    naive = [r for r in rows if r["method"] == "naive" and r["scene"] == "default"]
+    if naive:
+        nv = max(naive, key=lambda r: r["n"])
+        n = nv["n"]
+        v["naive_n"] = n
+        v["naive_vertices"] = _count(nv["vertices"])
+        v["naive_pu"] = _x(nv["poisson_units"])
+        v["naive_s"] = f"{nv['seconds']:.1f}"
+        v["naive_steps"] = nv["newton_total"]
+        inex = _at(rows, n, scene="default", method="inexact", nested="auto", path="decoupled")
+        exact = _at(rows, n, scene="default", method="exact", nested=False, path="decoupled")
+        if inex:
+            v["naive_over_inexact"] = _x(nv["seconds"] / inex["seconds"])
+            v["contact_inexact_pu_naive_n"] = _x(inex["poisson_units"])
+        if exact:
+            v["naive_over_exact"] = _x(nv["seconds"] / exact["seconds_without_estimate"])
+            v["exact_steps_naive_n"] = exact["newton_total"]
+        diffs = [r["max_abs_diff_u_vs_reference"] for r in rows if r["method"] == "naive"]
+        v["naive_max_du"] = f"{max(diffs):.1e}"
+
+
+def _estimate(d, v):
+    big = max(d["rows"], key=lambda r: r["n"])
+    v["estimate_n"] = big["n"]
+    v["estimate_vertices"] = _count(big["vertices"])
+    v["estimate_pu"] = f"{big['estimate_poisson_units']:.1f}"
+    v["patches_per_s"] = f"{big['patches_per_s'] / 1e3:.0f}k"
+    v["patches_per_s_range"] = (
+        f"{min(r['patches_per_s'] for r in d['rows']) / 1e3:.0f}k–"
+        f"{max(r['patches_per_s'] for r in d['rows']) / 1e3:.0f}k"
+    )
+
+
+def _work_precision(d, v):
+    rows = d["rows"]
+    inex = [r for r in rows if r["method"] == "inexact"]
+    if not inex:
+        return
+    big = max(inex, key=lambda r: r["n"])
+    v["wp_n"] = big["n"]
+    if "time_over_exact_amg_time" in big:
+        v["wp_time_vs_exact_amg"] = f"{big['time_over_exact_amg_time']:.2f}"
+        v["wp_error_vs_exact_amg"] = f"{big['error_over_exact_amg_error']:.4f}"
+    with_exact = [r for r in inex if "time_over_exact_time" in r]
+    if with_exact:
+        e = max(with_exact, key=lambda r: r["n"])
+        v["wp_exact_n"] = e["n"]
+        v["wp_time_vs_exact"] = f"{e['time_over_exact_time']:.2f}"
+        v["wp_error_vs_exact"] = f"{e['error_over_exact_error']:.4f}"
+    eff = [r["effectivity"] for r in rows]
+    v["wp_eff_range"] = f"{min(eff):.2f}–{max(eff):.2f}"
+    v["wp_bound_holds"] = "yes" if all(r["bound_holds"] for r in rows) else "NO"
+    rate = d.get("rates", {}).get("inexact", {}).get("error_rate_in_h")
+    if rate is not None:
+        v["wp_rate"] = f"{rate:.2f}"
+
+
+def _scaling(d, v):
+    big = max(d["rows"], key=lambda r: r["n"])
+    v["scaling_n"] = big["n"]
+    v["scaling_vertices"] = _count(big["vertices"])
+    v["scaling_total_s"] = f"{big['total_s']['median']:.0f}"
+    v["scaling_peak_gb"] = f"{big['peak_rss_mb'] / 1024:.1f}"
+    for ph, p in d.get("exponents", {}).items():
+        if isinstance(p, float):
+            v[f"scaling_exp_{ph}"] = f"{p:.2f}"
+    for ph in d.get("phases", []):
+        v[f"scaling_{ph}_s"] = f"{big['phases'][ph]['median']:.2f}"
+
+
+def _threads(d, v):
+    rows = d["rows"]
+    big_n = max(r["n"] for r in rows)
+    v["threads_n"] = big_n
+    v["threads_k"] = max(d["parameters"]["threads"])
+    for r in rows:
+        if r["n"] == big_n:
+            v[f"threads_speedup_{r['kernel']}"] = f"{r['speedup']:.2f}"
+    v["threads_identical"] = "yes" if all(r["identical"] for r in rows) else "no"
+    v["threads_max_rel_diff"] = f"{max(r['max_rel_diff'] for r in rows):.1e}"
+
+
+def _exact_solve(d, v):
+    diffs = [
+        r["max_abs_diff_u_vs_decoupled"] for r in d["rows"] if "max_abs_diff_u_vs_decoupled" in r
+    ]
+    if diffs:
+        v["paths_max_du"] = f"{max(diffs):.1e}"
+
+
+_EXTRACT = {
+    "assembly": _assembly,
+    "poisson_unit": _poisson,
+    "exact_solve": _exact_solve,
+    "contact_solve": _contact,
+    "estimate": _estimate,
+    "work_precision": _work_precision,
+    "scaling": _scaling,
+    "threads": _threads,
+}
+
+
+def values(quick=False, folder=None):
+    """All placeholder values computable from the result files."""
+    out = {}
+    machines = []
+    for name, fn in _EXTRACT.items():
+        d = load(name, quick, folder)
+        if d is None or not d.get("rows"):
+            continue
+        try:
+            fn(d, out)
+        except (KeyError, ValueError, TypeError, ZeroDivisionError) as exc:
+            sys.stderr.write(f"report: {name}: incomplete results ({exc!r})\n")
+        machines.append(d.get("machine", {}))
+    if machines:
+        m = machines[0]
+        vers = m.get("versions", {})
+        out["machine"] = (
+            f"{m.get('cores')} cores, {m.get('platform', '?')}, Python {m.get('python')}, "
+            f"numba {vers.get('numba')} ({m.get('numba_threading_layer')}, "
+            f"{m.get('numba_threads')} threads), numpy {vers.get('numpy')}, scipy "
+            f"{vers.get('scipy')}, pyamg {vers.get('pyamg')}, BLAS threads "
+            f"{m.get('fastmem_threads', {}).get('blas')}"
+        )
+        dates = sorted(x.get("date", "") for x in machines if x.get("date"))
+        if dates:
+            first, last = dates[0][:10], dates[-1][:10]
+            out["dates"] = first if first == last else f"{first} – {last}"
+    return out
+
+
+_PLACEHOLDER = re.compile(r"\{([a-zA-Z0-9_]+)\}")
+
+
+def fill(text, vals):
+    """Replace each ``{name}`` with its value; unknown names stay as they are."""
+    return _PLACEHOLDER.sub(lambda m: str(vals.get(m.group(1), m.group(0))), text)
+
+
+def missing(text, vals):
+    return sorted({m.group(1) for m in _PLACEHOLDER.finditer(text)} - set(vals))
+
+
+def summary_lines(quick=False, folder=None):
+    """One line of key numbers per benchmark (for ``python -m bench``)."""
+    v = values(quick, folder)
+    g = v.get
+    lines = [
+        f"assembly      n={g('assembly_n')}: fastmem {g('assembly_ratio')}x faster than "
+        f"scikit-fem, max |A - A_skfem| {g('assembly_max_diff')}",
+        f"poisson_unit  n={g('poisson_n')}: {g('poisson_s')} s, {g('poisson_its')} CG its, "
+        f"setup {g('poisson_setup_pct')}%",
+        f"exact_solve   general vs decoupled: max |du| {g('paths_max_du')}",
+        f"contact_solve n={g('contact_n')}: inexact {g('contact_inexact_pu')} PU, exact-amg "
+        f"{g('contact_exact_amg_pu')} PU; naive at n={g('naive_n')}: {g('naive_pu')} PU "
+        f"({g('naive_over_inexact')}x inexact), max |du| {g('naive_max_du')}",
+        f"estimate      n={g('estimate_n')}: {g('estimate_pu')} PU, {g('patches_per_s')} patches/s",
+        f"work_prec.    n={g('wp_n')}: inexact/exact-amg time {g('wp_time_vs_exact_amg')}, "
+        f"error ratio {g('wp_error_vs_exact_amg')}, effectivity {g('wp_eff_range')}, "
+        f"bound holds: {g('wp_bound_holds')}",
+        f"scaling       n={g('scaling_n')}: exponents mesh {g('scaling_exp_mesh')} solve "
+        f"{g('scaling_exp_solve')} estimate {g('scaling_exp_estimate')} archive "
+        f"{g('scaling_exp_archive')}, peak {g('scaling_peak_gb')} GB",
+        f"threads       n={g('threads_n')}: speed-up flux {g('threads_speedup_flux')} "
+        f"assembly {g('threads_speedup_assembly')}, identical: {g('threads_identical')}",
+    ]
+    return lines
+
+
+def _plots_available():
+    """True when matplotlib can be imported (figures are drawn)."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def figures(quick=False, folder=None):
+    """Redraw every benchmark figure from its JSON; return the written paths."""
+    from bench import _plots
+
+    out = []
+    folder = Path(folder or results_dir())
+    for name in BENCHMARKS:
+        d = load(name, quick, folder)
+        if d is None:
+            continue
+        png = _plots.figure(name, d, folder / f"{result_name(name, quick)}.png")
+        if png is not None:
+            out.append(png)
+    return out
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="read the *_quick.json files")
+    p.add_argument("--results", type=Path, default=None)
+    p.add_argument("--template", type=Path, default=TEMPLATE)
+    p.add_argument("--figures", action="store_true", help="redraw the PNG figures too")
+    p.add_argument("--missing", action="store_true", help="list unfilled placeholders")
+    args = p.parse_args(argv)
+    vals = values(args.quick, args.results)
+    text = args.template.read_text()
+    body = text.split("<!-- begin section -->", 1)[-1].split("<!-- end section -->", 1)[0]
+    sys.stdout.write(fill(body.strip("\n"), vals) + "\n")
+    if args.missing:
+        sys.stderr.write("unfilled: " + ", ".join(missing(body, vals)) + "\n")
+    if args.figures:
+        for path in figures(args.quick, args.results):
+            sys.stderr.write(f"wrote {path}\n")
+
+
+if __name__ == "__main__":
+    main()
