@@ -113,11 +113,13 @@ class _Evaluator:
         self.flux_seconds = 0.0
 
     def cheap(self, u1, u2, lam, r1, r2):
-        local = local_terms(self.scene, u1, u2, lam)
+        # no data oscillation here: it enters eta_disc only (added by evaluate() with the flux)
+        local = local_terms(self.scene, u1, u2, lam, oscillation=False)
         glob = global_terms(self.scene, u1, u2, lam, r1, r2)
         m = self.scene.mesh.n_triangles
         zero = np.zeros(m)
-        totals = combine(zero, zero, local, glob)["totals"]  # eta_lin, eta_alg need no flux
+        zeros = {**local, "eta_osc1": zero, "eta_osc2": zero}
+        totals = combine(zero, zero, zeros, glob)["totals"]  # eta_lin, eta_alg need no flux
         return {"eta_lin": totals["eta_lin"], "eta_alg": totals["eta_alg"]}, local, glob
 
     def full(self, u1, u2, lam, r1, r2, local, glob):

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from .errors import DataError, InputTypeError, ParameterError
-from .estimators import combine, global_terms, local_terms
+from .estimators import _oscillation, combine, global_terms, local_terms
 from .flux import Fluxes, _mu_array, reconstruct
 from .kernels import flux as _kf
 from .linear import residuals
@@ -161,6 +161,8 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
     if local is None:
         local = local_terms(scene, u1, u2, lam)
+    elif local.get("eta_osc1") is None or local.get("eta_osc2") is None:
+        local = {**local, "eta_osc1": _oscillation(scene, 1), "eta_osc2": _oscillation(scene, 2)}
     if glob is None:
         glob = global_terms(scene, u1, u2, lam, r1, r2)
     out = combine(eta_f1, eta_f2, local, glob)

@@ -176,7 +176,7 @@ def _oscillation_callable(scene, i) -> np.ndarray:
     return (mesh.diameters / math.pi) * norm / np.sqrt(mu)
 
 
-def local_terms(scene, u1, u2, lam) -> dict:
+def local_terms(scene, u1, u2, lam, oscillation=True) -> dict:
     r"""Per-triangle estimators that need no flux: non-conformity, complementarity, oscillation.
 
     Parameters
@@ -187,6 +187,13 @@ def local_terms(scene, u1, u2, lam) -> dict:
     u1, u2, lam : ndarray of shape (N,)
         Nodal values of the iterate.  ``lam`` may have any sign; its entries at
         boundary vertices are ignored (:math:`\lambda_h \in X_{0h}`).
+    oscillation : bool
+        Compute the data oscillation (default).  ``False`` leaves ``eta_osc1``
+        and ``eta_osc2`` as None: they depend on the data only and enter
+        :math:`\eta_{disc}` alone, so the adaptive solver's frequent checks of
+        :math:`\eta_{lin}, \eta_{alg}` skip them (with callable loads, one
+        evaluation of each load at every quadrature point);
+        :func:`fastmem.bound.evaluate` fills them in when needed.
 
     Returns
     -------
@@ -228,8 +235,8 @@ def local_terms(scene, u1, u2, lam) -> dict:
     return {
         "eta_nc": eta_nc,
         "eta_C": eta_c,
-        "eta_osc1": _oscillation(scene, 1),
-        "eta_osc2": _oscillation(scene, 2),
+        "eta_osc1": _oscillation(scene, 1) if oscillation else None,
+        "eta_osc2": _oscillation(scene, 2) if oscillation else None,
     }
 
 
