@@ -67,6 +67,7 @@ from .errors import (
     ParameterError,
     ReadOnlyError,
 )
+from .kernels import assembly as _ka
 
 __all__ = ["Mesh"]
 
@@ -224,8 +225,7 @@ class Mesh:
                 f"degenerate triangles: {int(rep.sum())} triangles repeat a vertex "
                 f"(first: triangle {k} = {t[k].tolist()})"
             )
-        area2 = _signed_area2(v, t)
-        h2 = _max_edge_sq(v, t)
+        area2, h2 = _ka.area2_and_diameter2(v, t)
         small = h2 < _MIN_DIAMETER**2
         if small.any():
             k = int(np.flatnonzero(small)[0])
@@ -676,19 +676,6 @@ def _check_cells(name, value) -> int:
     if value < 1:
         raise ParameterError(f"{name} must be a positive integer, got {value!r}")
     return int(value)
-
-
-def _signed_area2(v: np.ndarray, t: np.ndarray) -> np.ndarray:
-    p0, p1, p2 = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-    return (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p2[:, 0] - p0[:, 0]) * (
-        p1[:, 1] - p0[:, 1]
-    )
-
-
-def _max_edge_sq(v: np.ndarray, t: np.ndarray) -> np.ndarray:
-    p = v[t]  # (M, 3, 2)
-    d = p[:, _EDGE_VERTS[:, 1]] - p[:, _EDGE_VERTS[:, 0]]
-    return (d**2).sum(axis=2).max(axis=1)
 
 
 def _p1_gradients(v: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from numba import prange
 from ._jit import pjit
 
 __all__ = [
+    "area2_and_diameter2",
     "gather_csr",
     "mass_csr",
     "stiffness_csr",
@@ -22,6 +23,34 @@ __all__ = [
     "mass_local",
     "stiffness_local",
 ]
+
+
+@pjit
+def area2_and_diameter2(vertices, triangles):
+    """Twice the signed area and the squared diameter (longest edge) of every triangle.
+
+    One pass over the triangles, no temporaries (the NumPy expression allocated
+    six (M, 3, 2) arrays: 4.2 s of the 9 s ``Mesh.square(2048)``).
+
+    Returns
+    -------
+    area2 : float64 (M,)
+        ``(p1 - p0) x (p2 - p0)``: positive for counter-clockwise triangles.
+    h2 : float64 (M,)
+        ``max_e |e|^2`` over the three edges.
+    """
+    m = triangles.shape[0]
+    area2 = np.empty(m)
+    h2 = np.empty(m)
+    for k in prange(m):
+        i0, i1, i2 = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+        x0, y0 = vertices[i0, 0], vertices[i0, 1]
+        ax, ay = vertices[i1, 0] - x0, vertices[i1, 1] - y0
+        bx, by = vertices[i2, 0] - x0, vertices[i2, 1] - y0
+        area2[k] = ax * by - bx * ay
+        cx, cy = bx - ax, by - ay
+        h2[k] = max(ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy)
+    return area2, h2
 
 
 @pjit

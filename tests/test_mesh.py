@@ -740,3 +740,23 @@ def test_validate_false_still_runs_cheap_checks():
     Mesh(v, [[0, 1, 2], [4, 2, 3]], validate=False)
     with pytest.raises(MeshError, match="duplicate"):
         Mesh(v, [[0, 1, 2], [4, 2, 3]], validate=True)
+
+
+def test_area_and_diameter_kernel_matches_numpy():
+    """The one-pass Numba kernel used by Mesh validation vs a plain NumPy reference."""
+    from fastmem.kernels.assembly import area2_and_diameter2
+
+    rng = np.random.default_rng(7)
+    base = Mesh.square(12)
+    v = base.vertices + rng.uniform(-0.02, 0.02, base.vertices.shape)
+    t = np.ascontiguousarray(base.triangles[:, [0, 2, 1]])  # clockwise: negative areas
+    area2, h2 = area2_and_diameter2(v, t)
+    p = v[t]
+    ref_area2 = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (
+        p[:, 2, 0] - p[:, 0, 0]
+    ) * (p[:, 1, 1] - p[:, 0, 1])
+    edges = p[:, [1, 2, 0]] - p[:, [0, 1, 2]]
+    ref_h2 = (edges**2).sum(axis=2).max(axis=1)
+    assert (area2 < 0).all()
+    np.testing.assert_allclose(area2, ref_area2, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(h2, ref_h2, rtol=1e-12)
