@@ -131,6 +131,9 @@ def _contact(d, v):
                 v[f"contact_exact_amg_pu{tag}"] = _x(other["poisson_units"])
             if "energy_error" in big:
                 v["contact_effectivity_mms"] = f"{big['effectivity']:.2f}"
+    table = _contact_table(rows)
+    if table:
+        v["contact_table"] = table
     gen = [
         r
         for r in rows
@@ -161,6 +164,30 @@ def _contact(d, v):
             v["exact_steps_naive_n"] = exact["newton_total"]
         diffs = [r["max_abs_diff_u_vs_reference"] for r in rows if r["method"] == "naive"]
         v["naive_max_du"] = f"{max(diffs):.1e}"
+
+
+def _contact_table(rows):
+    """Markdown table: nested decoupled inexact / exact-amg per size and scene (PU, steps)."""
+    lines = [
+        "| n | scene | inexact: Newton steps (finest) | CG its | PU | exact-amg: steps (finest)"
+        " | CG its | PU |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for n in sorted({r["n"] for r in rows}):
+        for scene in ("default", "manufactured"):
+            cells = []
+            for method in ("inexact", "exact-amg"):
+                r = _at(rows, n, scene=scene, method=method, nested="auto", path="decoupled")
+                if r is None:
+                    break
+                cells += [
+                    f"{r['newton_total']} ({r['newton_finest']})",
+                    str(r["inner_total"]),
+                    f"{r['poisson_units']:.2f}",
+                ]
+            if len(cells) == 6:
+                lines.append(f"| {n} | {scene} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) if len(lines) > 2 else None
 
 
 def _estimate(d, v):
