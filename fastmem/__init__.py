@@ -19,6 +19,34 @@ from importlib.metadata import PackageNotFoundError, version
 # call at most.  Set before Numba starts its pool; an explicit user setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+
+def _source_tree_kernels():
+    """Register ``fastmem.kernels`` when fastmem is imported from a source checkout.
+
+    The installed package has ``fastmem/kernels`` (setup.cfg maps the top-level
+    ``kernels/`` folder there).  Python started in the repository root (``python
+    -m bench``, ``python -c ...``) finds the source folder ``fastmem/`` first,
+    which has no ``kernels`` subfolder: load ``../kernels`` under that name.
+    """
+    import importlib.util
+    import sys
+
+    here = os.path.dirname(os.path.abspath(__file__))
+    if os.path.isdir(os.path.join(here, "kernels")) or "fastmem.kernels" in sys.modules:
+        return
+    init = os.path.join(os.path.dirname(here), "kernels", "__init__.py")
+    if not os.path.isfile(init):
+        return
+    spec = importlib.util.spec_from_file_location(
+        "fastmem.kernels", init, submodule_search_locations=[os.path.dirname(init)]
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["fastmem.kernels"] = module
+    spec.loader.exec_module(module)
+
+
+_source_tree_kernels()
+
 from . import errors  # noqa: E402
 from .archive import load  # noqa: E402
 from .bound import estimate  # noqa: E402
