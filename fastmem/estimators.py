@@ -214,10 +214,10 @@ def local_terms(scene, u1, u2, lam, oscillation=True) -> dict:
 
     Notes
     -----
-    The positive parts are integrated exactly by the Numba kernels
-    :func:`fastmem.kernels.cut.positive_area` and
-    :func:`fastmem.kernels.cut.positive_product` (parallel over triangles),
-    which split each triangle along the zero line of the gap.
+    The positive parts are integrated exactly by the Numba kernel
+    :func:`fastmem.kernels.cut.contact_terms` (parallel over triangles, one
+    pass for both terms), which splits each triangle along the zero line of
+    the gap.
     """
     mesh = scene.mesh
     u1 = _nodal(mesh, u1, "u1")
@@ -225,13 +225,8 @@ def local_terms(scene, u1, u2, lam, oscillation=True) -> dict:
     lam = _nodal(mesh, lam, "lam")
     gap = u1 - u2
     lam_hat, _ = _lambda_parts(mesh, lam)
-    v, t = mesh.vertices, mesh.triangles
-    # |grad(u2 - u1)|^2 on each triangle (the gradient is constant there)
-    grad = np.einsum("mij,mi->mj", mesh.gradients, gap[t])
-    grad_sq = np.einsum("mj,mj->m", grad, grad)
-    neg_area = _cut.positive_area(v, t, -gap)
-    eta_nc = np.sqrt(scene.mu2 * grad_sq * neg_area)
-    eta_c = _cut.positive_product(v, t, gap, lam_hat)
+    mu2 = np.ascontiguousarray(np.atleast_1d(np.asarray(scene.mu2, dtype=np.float64)))
+    eta_nc, eta_c = _cut.contact_terms(mesh.vertices, mesh.triangles, gap, lam_hat, mu2)
     return {
         "eta_nc": eta_nc,
         "eta_C": eta_c,
