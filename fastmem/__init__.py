@@ -43,6 +43,7 @@ def _source_tree_kernels():
     module = importlib.util.module_from_spec(spec)
     sys.modules["fastmem.kernels"] = module
     spec.loader.exec_module(module)
+    globals()["kernels"] = module  # as the import system does for a submodule
 
 
 _source_tree_kernels()
