@@ -21,15 +21,13 @@ ROOT = Path(__file__).resolve().parents[1]
 if not (ROOT / "bench" / "__init__.py").exists():  # pragma: no cover - installed without bench/
     pytest.skip("bench/ is not in this source tree", allow_module_level=True)
 
-BENCHMARKS = (
-    "assembly",
-    "poisson_unit",
-    "exact_solve",
-    "contact_solve",
-    "estimate",
-    "work_precision",
-    "scaling",
-    "threads",
+#: Every benchmark script in bench/ (not the helpers ``_*.py``, ``report``, ``__main__``).
+BENCHMARKS = tuple(
+    sorted(
+        p.stem
+        for p in (ROOT / "bench").glob("*.py")
+        if not p.stem.startswith("_") and p.stem != "report"
+    )
 )
 
 MACHINE_KEYS = {"cores", "numba_threads", "fastmem_threads", "blas_libraries", "versions"}
@@ -208,3 +206,10 @@ def test_main_runs_one_benchmark(tmp_path):
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "exact_solve_quick.json").exists()
     assert "key numbers" in res.stdout
+
+
+def test_every_script_is_registered(tmp_path):
+    """``python -m bench`` runs every benchmark script there is (none forgotten)."""
+    res = _run(["bench", "--list"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert sorted(res.stdout.split()) == list(BENCHMARKS)

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 import fastmem as fm
@@ -36,6 +37,46 @@ def test_pcg_matches_a_direct_solve(rng):
     assert np.abs(cg.x - x).max() <= 1e-9 * np.abs(x).max()
     # the recursive residual stays the true residual
     assert np.linalg.norm(b - a @ cg.x) <= 1e-10 * np.linalg.norm(b)
+
+
+def test_pcg_exact_start_is_stuck_not_frozen():
+    """x0 = the exact solution: the residual is 0, CG cannot step and says so (f = 0 hang)."""
+    a = sp.diags([2.0, 3.0, 4.0]).tocsr()
+    x = np.array([1.0, -2.0, 0.5])
+    cg = PCG(a, a @ x, x, lambda r: r / a.diagonal())
+    assert not cg.step()
+    assert cg.stuck
+    assert cg.at_roundoff(1e-12)
+    assert cg.solve(1e-12, 50) == 0
+    np.testing.assert_array_equal(cg.x, x)
+
+
+def test_pcg_wild_start_is_replaced_by_zero(rng):
+    scene = _default_scene(16)
+    ii = scene.mesh.interior_vertices
+    a = scene.stiffness[ii][:, ii].tocsr()
+    b = rng.standard_normal(ii.size)
+    cg = PCG(a, b, np.full(ii.size, 1e80), amg_preconditioner(a))
+    assert np.abs(cg.x).max() == 0.0
+    cg.solve(1e-12, 100)
+    assert np.linalg.norm(b - a @ cg.x) <= 1e-11 * np.linalg.norm(b)
+
+
+def test_pcg_checks_the_true_residual(rng):
+    """A drifted recursive residual (here: tampered with) does not end the solve."""
+    scene = _default_scene(16)
+    ii = scene.mesh.interior_vertices
+    a = scene.stiffness[ii][:, ii].tocsr()
+    b = rng.standard_normal(ii.size)
+    jacobi = a.diagonal()
+    cg = PCG(a, b, np.zeros_like(b), lambda r: r / jacobi)
+    for _ in range(3):
+        cg.step()
+    cg.r *= 1e-20  # the recursion claims convergence, the iterate is far from it
+    assert not cg.at_roundoff(1e-12)
+    cg.solve(1e-12, 100)
+    assert cg.restarts >= 1
+    assert np.linalg.norm(b - a @ cg.x) <= 1e-12 * np.linalg.norm(b) * (1 + 1e-9)
 
 
 @pytest.mark.parametrize("kind", ["square", "lshape", "refined"])

@@ -2,9 +2,9 @@
 
 ``rt1_local`` (reference matrices under the contravariant Piola map) and
 ``rt1_coefficient_matrix`` / ``rt1_dofs_to_coefficients`` (dofs -> canonical
-coefficients) must reproduce what the original ``rt1_local_quadrature``
-computes (degree-4 quadrature of the canonical monomials and an 8 x 8 inverse
-of their dof matrix) on random, obtuse, stretched (aspect 1e3) and tiny
+coefficients) must reproduce what the original quadrature algorithm computes
+(``_quadrature`` here, plain NumPy: a degree-5 rule for the canonical monomials
+and an 8 x 8 inverse of their dof matrix) on random, obtuse, stretched (aspect 1e3) and tiny
 (area 1e-12) triangles, for every orientation pattern of the three edges.
 
 A third, independent reference is the quadrature algorithm carried out in
@@ -78,24 +78,50 @@ def _cases(kind, seed):
 # ------------------------------------------------------------------ the three paths
 
 
+def _monomials(xi, eta):
+    """The 8 canonical monomial fields at scaled points: (..., 8, 2)."""
+    z, o = np.zeros_like(xi), np.ones_like(xi)
+    fx = [o, xi, eta, z, z, z, xi * xi, xi * eta]
+    fy = [z, z, z, o, xi, eta, xi * eta, eta * eta]
+    return np.stack([np.stack(fx, -1), np.stack(fy, -1)], -1)
+
+
 def _quadrature(p, tri, h):
+    """The original algorithm (plain NumPy): monomial integrals by a degree-5 rule and an
+    8 x 8 inverse of the dof matrix of the canonical monomials about the centroid / h."""
     bary, w = triangle_rule(5)
-    coef, mass = np.zeros((8, 8)), np.zeros((8, 8))
-    div, tau = np.zeros((3, 8)), np.zeros((3, 2, 8))
-    area = rt1.rt1_local_quadrature(
-        p,
-        tri,
-        h,
-        np.ascontiguousarray(bary),
-        np.ascontiguousarray(w),
-        coef,
-        mass,
-        div,
-        tau,
-        np.zeros((8, 2)),
-        np.zeros(rt1.SCRATCH_SIZE),
-    )
-    return {"area": area, "coef": coef, "mass": mass, "div": div, "tau": tau}
+    d1, d2 = p[1] - p[0], p[2] - p[0]
+    area = 0.5 * (d1[0] * d2[1] - d2[0] * d1[1])
+    c = p.mean(axis=0)
+    g = np.zeros((8, 8))
+    for k in range(3):  # edge k: vertices k+1, k+2, oriented low -> high global index
+        ia, ib = (k + 1) % 3, (k + 2) % 3
+        lo, hi = (ia, ib) if tri[ia] < tri[ib] else (ib, ia)
+        t = p[hi] - p[lo]
+        for end, v in enumerate((lo, hi)):
+            mv = _monomials(*((p[v] - c) / h))  # (8, 2)
+            g[2 * k + end] = mv[:, 0] * t[1] - mv[:, 1] * t[0]
+    xq = bary @ p  # (nq, 2)
+    sc = (xq - c) / h
+    mq = _monomials(sc[:, 0], sc[:, 1])  # (nq, 8, 2)
+    wq = w * area
+    g[6] = np.einsum("q,qm->m", wq, mq[..., 0]) * h / area
+    g[7] = np.einsum("q,qm->m", wq, mq[..., 1]) * h / area
+    mass_m = np.einsum("q,qmc,qnc->mn", wq, mq, mq)
+    # divergence of the monomials (physical): (1/h) [0, 1, 0, 0, 0, 1, 3 xi, 3 eta]
+    dv = np.zeros((bary.shape[0], 8))
+    dv[:, 1] = dv[:, 5] = 1.0 / h
+    dv[:, 6], dv[:, 7] = 3.0 * sc[:, 0] / h, 3.0 * sc[:, 1] / h
+    div_m = np.einsum("q,qa,qm->am", wq, bary, dv)
+    tau_m = np.einsum("q,qa,qmc->acm", wq, bary, mq)
+    coef = np.linalg.inv(g)
+    return {
+        "area": area,
+        "coef": coef,
+        "mass": coef.T @ mass_m @ coef,
+        "div": div_m @ coef,
+        "tau": tau_m @ coef,
+    }
 
 
 def _piola(p, tri, h):
