@@ -69,18 +69,14 @@ import math
 
 import numpy as np
 
-from .assembly import assemble_mass, evaluate_callable
+from .assembly import assemble_mass
 from .errors import DataError
 from .kernels import cut as _cut
-from .quadrature import quadrature_points, triangle_rule
+from .loaddata import integrals
 
 __all__ = ["combine", "friedrichs_constant", "global_terms", "local_terms"]
 
 logger = logging.getLogger(__name__)
-
-# Triangles per block when evaluating callable loads for the oscillation
-# (bounds the (block, n_points) temporaries).
-_OSC_BLOCK = 1 << 18
 
 
 def friedrichs_constant(mesh) -> float:
@@ -134,7 +130,7 @@ def _lambda_parts(mesh, lam):
 
 
 def _oscillation(scene, i) -> np.ndarray:
-    r"""Per-triangle :math:`\eta_{osc,K,i}`, shape (M,); zeros without work for P1 data.
+    r"""Per-triangle :math:`\eta_{osc,K,i}`, shape (M,); zeros for constant and P1 data.
 
     For callable :math:`f_i`, with the rule :math:`(x_q, w_q)` of degree
     ``scene.load_degree``: :math:`b_{K,j} = |K| \sum_q w_q f(x_q) \phi_j(x_q)`,
@@ -143,37 +139,10 @@ def _oscillation(scene, i) -> np.ndarray:
     rule of degree >= 2 this equals :math:`Q(f^2) - (\Pi_K f, \Pi_K f)_K`
     exactly (``Q(f Π f) = c·b = c·M c``), but it is evaluated in the form
     above: a sum of squares, free of cancellation and never negative.
+    Computed by :func:`fastmem.loaddata.integrals` from the same values of
+    :math:`f_i` as the load vector and the flux moments, cached on the scene.
     """
-    name = f"f{i}"
-    mesh = scene.mesh
-    m = mesh.n_triangles
-    if scene.data_kind(name) != "callable":  # constant or P1 data: f = Pi_K f exactly
-        return np.zeros(m)
-    key = f"osc{i}"  # depends on the data only: computed once per scene
-    if key not in scene._cache:
-        scene._cache[key] = _oscillation_callable(scene, i)
-    return scene._cache[key]
-
-
-def _oscillation_callable(scene, i) -> np.ndarray:
-    name = f"f{i}"
-    mesh = scene.mesh
-    m = mesh.n_triangles
-    f = getattr(scene, name)
-    mu = scene.mu1 if i == 1 else scene.mu2
-    bary, weights = triangle_rule(scene.load_degree)
-    sq = np.empty(m)  # ||f - Pi_K f||_K^2 / |K|
-    for start in range(0, m, _OSC_BLOCK):
-        stop = min(start + _OSC_BLOCK, m)
-        x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
-        fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
-        mom = (fv * weights) @ bary  # (m_b, 3): (f, phi_j)_K / |K|
-        # M_K^{-1} = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]  =>  c = 12 mom - 3 sum(mom)
-        coef = 12.0 * mom - 3.0 * mom.sum(axis=1, keepdims=True)
-        diff = fv - coef @ bary.T
-        sq[start:stop] = (diff * diff) @ weights
-    norm = np.sqrt(sq * mesh.areas)
-    return (mesh.diameters / math.pi) * norm / np.sqrt(mu)
+    return integrals(scene, i, moments=True)["osc"]
 
 
 def local_terms(scene, u1, u2, lam, oscillation=True) -> dict:

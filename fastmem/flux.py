@@ -32,11 +32,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .assembly import csr_structure, evaluate_callable
+from .assembly import csr_structure
 from .errors import DataError
 from .kernels import flux as _kf
 from .linear import residuals
-from .quadrature import quadrature_points, triangle_rule
+from .loaddata import integrals
 
 __all__ = ["Fluxes", "reconstruct"]
 
@@ -101,25 +101,10 @@ def _coloring(mesh):
 def load_moments(scene, i: int):
     """``int_K f_i lambda_j lambda_k`` per triangle, shape (M, 3, 3), or None for constants.
 
-    Uses the rule of the load vector (degree ``scene.load_degree`` for
-    callables, degree 5 — exact — for per-vertex P1 data).
+    Cached on the scene by :func:`fastmem.loaddata.integrals` (one evaluation of
+    a callable load per mesh, shared with the load vector and the oscillation).
     """
-    mesh = scene.mesh
-    f = scene.f1 if i == 1 else scene.f2
-    kind = scene.data_kind(f"f{i}")
-    if kind == "constant":
-        return None
-    degree = scene.load_degree if kind == "callable" else 5
-    bary, w = triangle_rule(degree)
-    if kind == "callable":
-        x, y = quadrature_points(mesh.vertices, mesh.triangles, bary)
-        fq = evaluate_callable(f, x, y, f"f{i}")
-    else:
-        fq = np.asarray(f)[mesh.triangles] @ bary.T  # P1 values at the points, (M, nq)
-    fw = fq * w  # (M, nq)
-    mom = np.einsum("mq,qi,qj->mij", fw, bary, bary)
-    mom *= mesh.areas[:, None, None]
-    return np.ascontiguousarray(mom)
+    return integrals(scene, i, moments=True)["moments"]
 
 
 def _mu_array(mu):

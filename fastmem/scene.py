@@ -13,8 +13,9 @@ import numbers
 
 import numpy as np
 
-from .assembly import DEFAULT_LOAD_DEGREE, assemble_load, assemble_stiffness, evaluate_callable
+from .assembly import DEFAULT_LOAD_DEGREE, assemble_stiffness, evaluate_callable
 from .errors import DataError, InputTypeError, ParameterError, ReadOnlyError
+from .loaddata import integrals
 from .mesh import Mesh
 
 __all__ = ["Scene"]
@@ -385,10 +386,7 @@ class Scene:
         the wrong shape, type, or non-finite values) and then pass :meth:`check_scale`.
         """
         if "F" not in self._cache:
-            loads = tuple(
-                assemble_load(self.mesh, f, self.load_degree, name)
-                for f, name in ((self.f1, "f1"), (self.f2, "f2"))
-            )
+            loads = tuple(integrals(self, i, moments=False)["F"] for i in (1, 2))
             for vec, name in zip(loads, ("f1", "f2"), strict=True):
                 if not np.isfinite(vec).all():
                     raise DataError(

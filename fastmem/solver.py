@@ -32,6 +32,7 @@ from .amg import check_amg_options
 from .config import blas_limits, get_threads
 from .errors import CyclingError, InputTypeError, ParameterError
 from .linear import make_step, residuals
+from .loaddata import expect_estimates
 from .nested import coarse_scenes, prolong_triple
 from .result import Result, check_triple
 from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
@@ -230,6 +231,8 @@ def solve(
     t_start = time.perf_counter()
     with blas_limits(blas_threads):
         t0 = time.perf_counter()
+        if estimate or method == "inexact":  # one evaluation of callable loads for all uses
+            expect_estimates(scene)
         _ = scene.loads, scene.weighted_stiffness(1), scene.weighted_stiffness(2)
         timings["assembly"] = time.perf_counter() - t0
         if method == "exact":
@@ -305,6 +308,8 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
         step = make_step(sc, path)
         # intermediate levels only make initial guesses: no flux there (see newton_amg)
         certify = lev == 0 or lev == len(levels) - 1
+        if certify and (estimate or method == "inexact"):
+            expect_estimates(sc)
         if certify and disc_hint is not None:
             # a hint above the true value triggers a flux too early (a wasted one)
             disc_hint *= HINT_SAFETY

@@ -1,0 +1,144 @@
+r"""Integrals of the loads per triangle, with one evaluation of each callable per mesh.
+
+Three quantities are built from the loads :math:`f_i`:
+
+- the load vector :math:`F_{i,a} = (f_i, \psi_a)` (every solve);
+- the moments :math:`\int_K f_i \lambda_j \lambda_k` of the flux reconstruction
+  (every flux, :mod:`fastmem.flux`);
+- the data oscillation :math:`\eta_{osc,K,i}` (the final bound,
+  :mod:`fastmem.estimators`).
+
+For a callable load all three come from its values at the points of one
+quadrature rule (degree ``scene.load_degree``).  A user callable may be
+expensive, so :func:`integrals` evaluates it once, block by block, and
+computes everything asked for from the same values; the results are cached on
+the scene.  Whether the moments and the oscillation are wanted is known before
+the first evaluation: :func:`expect_estimates` (called by the solver when a
+bound will be computed) makes the first call build all three; without it
+(``estimate=False`` with the exact solver) only the load vector is built and
+nothing is stored per triangle.
+
+Per-vertex (P1) loads need no oscillation; their moments are exact with the
+degree-5 rule and cached after the first flux.  Constant loads have neither
+(the flux kernel integrates them exactly).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .assembly import assemble_load, evaluate_callable
+from .kernels import assembly as _k
+from .quadrature import quadrature_points, triangle_rule
+
+__all__ = ["expect_estimates", "integrals"]
+
+#: Triangles per block when a callable is evaluated: bounds the (block, n_points)
+#: temporaries (coordinates, values, products) to a few tens of MB.
+BLOCK = 1 << 17
+
+_WANT = "loads_for_estimates"
+
+
+def expect_estimates(scene) -> None:
+    """Declare that fluxes and the bound will be computed on ``scene``.
+
+    The first evaluation of a callable load then also builds its flux
+    moments and oscillation (one pass instead of three).  Harmless if the
+    loads were already evaluated: the missing parts are built on demand.
+    """
+    scene._cache[_WANT] = True
+
+
+def integrals(scene, i: int, *, moments: bool) -> dict:
+    """Return the cached integrals of the load ``f_i`` (``i`` in {1, 2}).
+
+    Parameters
+    ----------
+    scene : Scene
+    i : int
+        Membrane.
+    moments : bool
+        Also return the flux moments and the oscillation (built now if they
+        were not, together with the load vector).
+
+    Returns
+    -------
+    dict
+        ``"F"``: load vector (N,); with ``moments``: ``"moments"`` of shape
+        (M, 3, 3) or None (constant load) and ``"osc"`` of shape (M,) (zeros
+        for constant and P1 loads).
+    """
+    key = f"load_integrals{i}"
+    cache = scene._cache
+    have = cache.get(key)
+    want_all = moments or bool(cache.get(_WANT, False))
+    if have is not None and (not moments or "moments" in have):
+        return have
+    name = f"f{i}"
+    f = scene.f1 if i == 1 else scene.f2
+    kind = scene.data_kind(name)
+    if kind == "callable":
+        out = _callable(scene, i, f, name, want_all)
+        if have is not None:  # keep the load vector already handed out (same values)
+            out["F"] = have["F"]
+    else:
+        out = {"F": have["F"] if have is not None else assemble_load(scene.mesh, f, name=name)}
+        if want_all:
+            out["moments"] = None if kind == "constant" else _p1_moments(scene.mesh, f)
+            out["osc"] = np.zeros(scene.mesh.n_triangles)
+    cache[key] = out
+    return out
+
+
+def _p1_moments(mesh, f) -> np.ndarray:
+    """Moments of a P1 load: exact with the degree-5 rule."""
+    bary, w = triangle_rule(5)
+    fq = np.asarray(f, dtype=np.float64)[mesh.triangles] @ bary.T  # (M, nq)
+    return _moments_block(fq * w, bary, mesh.areas)
+
+
+def _moments_block(fw, bary, areas) -> np.ndarray:
+    nq = bary.shape[0]
+    outer = (bary[:, :, None] * bary[:, None, :]).reshape(nq, 9)
+    mom = (fw @ outer) * areas[:, None]
+    return mom.reshape(-1, 3, 3)
+
+
+def _callable(scene, i, f, name, want_all) -> dict:
+    mesh = scene.mesh
+    m = mesh.n_triangles
+    bary, w = triangle_rule(scene.load_degree)
+    local = np.empty((m, 3))
+    if want_all:
+        mom = np.empty((m, 3, 3))
+        norm = np.empty(m)  # ||f - Pi_K f||_K
+    for start in range(0, m, BLOCK):
+        stop = min(start + BLOCK, m)
+        x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
+        fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
+        fw = fv * w
+        avg = fw @ bary  # (m_b, 3): (f, phi_j)_K / |K|
+        areas = mesh.areas[start:stop]
+        local[start:stop] = avg * areas[:, None]
+        if want_all:
+            mom[start:stop] = _moments_block(fw, bary, areas)
+            # L2(K) projection onto P1: M_K^{-1} = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]
+            # => coefficients c = 12 avg - 3 sum(avg); the oscillation is summed as
+            # squares of f - Pi_K f at the points (free of cancellation, never negative)
+            # (scaled per triangle by max |f|: no overflow for data near the float range)
+            coef = 12.0 * avg - 3.0 * avg.sum(axis=1, keepdims=True)
+            diff = fv - coef @ bary.T
+            scale = np.abs(fv).max(axis=1)
+            scale[scale == 0.0] = 1.0
+            diff /= scale[:, None]
+            norm[start:stop] = scale * np.sqrt(((diff * diff) @ w) * areas)
+    vec = _k.gather_vector(local, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local)
+    out = {"F": vec}
+    if want_all:
+        mu = scene.mu1 if i == 1 else scene.mu2
+        out["moments"] = mom
+        out["osc"] = (mesh.diameters / math.pi) * norm / np.sqrt(mu)
+    return out
