@@ -29,6 +29,7 @@ BENCHMARKS = (
     "work_precision",
     "scaling",
     "threads",
+    "unstructured",
 )
 
 
@@ -259,7 +260,24 @@ def _exact_solve(d, v):
         v["paths_max_du"] = f"{max(diffs):.1e}"
 
 
+def _unstructured(d, v):
+    rows = [r for r in d["rows"] if r["nested"] == "auto"]
+    big_n = max(r["n"] for r in rows)
+    for r in rows:
+        if r["n"] == big_n:
+            key = r["scene"].replace("-", "_")
+            v[f"unstructured_{key}_speedup"] = f"{r['speedup_vs_unconstrained_start']:.1f}"
+            v[f"unstructured_{key}_finest"] = r["newton_finest"]
+    cold = {r["scene"]: r for r in d["rows"] if r["nested"] is False and r["n"] == big_n}
+    v["unstructured_n"] = big_n
+    v["unstructured_cold_steps"] = "/".join(str(cold[k]["newton_finest"]) for k in sorted(cold))
+    v["unstructured_auto_steps"] = "/".join(
+        str(r["newton_finest"]) for r in sorted(rows, key=lambda r: r["scene"]) if r["n"] == big_n
+    )
+
+
 _EXTRACT = {
+    "unstructured": _unstructured,
     "assembly": _assembly,
     "poisson_unit": _poisson,
     "exact_solve": _exact_solve,
@@ -335,6 +353,12 @@ def summary_lines(quick=False, folder=None):
         f"{g('scaling_exp_archive')}, peak {g('scaling_peak_gb')} GB",
         f"threads       n={g('threads_n')}: speed-up flux {g('threads_speedup_flux')} "
         f"assembly {g('threads_speedup_assembly')}, identical: {g('threads_identical')}",
+        f"unstructured  n={g('unstructured_n')}: auxiliary coarse meshes "
+        f"{g('unstructured_square_default_speedup')}x (square, default scene), "
+        f"{g('unstructured_square_manufactured_speedup')}x (manufactured), "
+        f"{g('unstructured_disk_default_speedup')}x (gmsh disk) faster than the "
+        f"unconstrained start; finest steps {g('unstructured_auto_steps')} vs "
+        f"{g('unstructured_cold_steps')}",
     ]
     return lines
 

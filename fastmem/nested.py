@@ -12,13 +12,12 @@ vertices, located in the coarse mesh with a bucket grid (Numba, O(N)).
 from __future__ import annotations
 
 import logging
-import math
 
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import MeshError
-from .kernels import locate as _kl
+from .coarsen import coarse_mesh, locate
+from .errors import FastmemError
 from .scene import Scene
 
 __all__ = ["coarse_scenes", "interpolation_matrix", "prolong_triple"]
@@ -30,70 +29,101 @@ NESTED_MIN_VERTICES = 1000
 
 
 def interpolation_matrix(coarse, fine) -> sp.csr_matrix:
-    """Sparse P1 interpolation ``I`` with ``(I v)_a = v_coarse(x_a)`` at the fine vertices."""
-    v, t = coarse.vertices, coarse.triangles
-    x0, x1, y0, y1 = coarse.bounding_box
-    nb = max(1, int(math.sqrt(coarse.n_triangles / 2)))
-    dx = (x1 - x0) / nb or 1.0
-    dy = (y1 - y0) / nb or 1.0
-    ptr, items = _kl.bucket_grid(v, t, nb, nb, x0, y0, dx, dy)
-    tri, bary = _kl.locate_points(fine.vertices, v, t, ptr, items, nb, nb, x0, y0, dx, dy)
-    if (tri < 0).any():
-        k = int(np.flatnonzero(tri < 0)[0])
-        raise MeshError(
-            f"fine vertex {k} at {fine.vertices[k].tolist()} is outside the coarse mesh"
-        )
+    """Sparse P1 interpolation ``I`` with ``(I v)_a = v_coarse(x_a)`` at the fine vertices.
+
+    A fine vertex outside the coarse mesh (across a curved boundary of an
+    auxiliary coarse mesh) takes the value at the nearest point of a nearby
+    coarse triangle, or, when no coarse triangle is near, of the nearest
+    coarse vertex.
+    """
+    t = coarse.triangles
+    tri, bary = locate(coarse, fine.vertices)
+    lost = tri < 0
+    if lost.any():
+        from scipy.spatial import cKDTree
+
+        nearest = cKDTree(coarse.vertices).query(fine.vertices[lost])[1]
+        cols = t[np.maximum(tri, 0)]
+        cols[lost] = nearest[:, None]
+        bary[lost] = (1.0, 0.0, 0.0)
+    else:
+        cols = t[tri]
     rows = np.repeat(np.arange(fine.n_vertices), 3)
     mat = sp.csr_matrix(
-        (bary.ravel(), (rows, t[tri].ravel())), shape=(fine.n_vertices, coarse.n_vertices)
+        (bary.ravel(), (rows, cols.ravel())), shape=(fine.n_vertices, coarse.n_vertices)
     )
     mat.eliminate_zeros()
     return mat
 
 
-def _transfer_mu(mu, fine, coarse):
+def _transfer_mu(mu, fine, coarse, cmap):
     if isinstance(mu, float):
         return mu
+    if cmap is not None:  # the fine triangle under each coarse centroid
+        return np.asarray(mu)[cmap.triangle]
     if fine.parent is coarse:  # red refinement: children of t are 4t .. 4t+3
         return np.asarray(mu).reshape(-1, 4).mean(axis=1)
     return None
 
 
-def _transfer_nodal(value, fine, coarse):
+def _transfer_nodal(value, fine, coarse, cmap):
     if callable(value) or isinstance(value, float):
         return value
+    if cmap is not None:  # coarse vertices are fine vertices
+        return np.asarray(value)[cmap.vertex]
     if fine.parent is coarse:
         return np.asarray(value)[: coarse.n_vertices]
     return None
 
 
-def coarse_scene(scene: Scene) -> Scene | None:
-    """Return the same problem on the next coarser mesh, or None if there is none."""
+def coarse_scene(scene: Scene, auxiliary: bool = False) -> Scene | None:
+    """Return the same problem on the next coarser mesh, or None if there is none.
+
+    With ``auxiliary``, a mesh without a coarser version (:meth:`Mesh.coarser`)
+    gets an auxiliary one built from a subset of its vertices
+    (:func:`fastmem.coarsen.coarse_mesh`).
+    """
     fine = scene.mesh
     coarse = fine.coarser()
+    cmap = None
+    if coarse is None and auxiliary:
+        cmap = coarse_mesh(fine)
+        coarse = None if cmap is None else cmap.mesh
     if coarse is None:
         return None
-    mu = [_transfer_mu(m, fine, coarse) for m in (scene.mu1, scene.mu2)]
-    data = [_transfer_nodal(d, fine, coarse) for d in (scene.f1, scene.f2, scene.g)]
+    mu = [_transfer_mu(m, fine, coarse, cmap) for m in (scene.mu1, scene.mu2)]
+    data = [_transfer_nodal(d, fine, coarse, cmap) for d in (scene.f1, scene.f2, scene.g)]
     if any(x is None for x in mu + data):
         logger.info("nested iteration: the data of this scene cannot move to a coarser mesh")
         return None
-    return Scene(
-        coarse,
-        mu=tuple(mu),
-        f=(data[0], data[1]),
-        g=data[2],
-        active_c=scene.active_c,
-        load_degree=scene.load_degree,
-    )
+    try:
+        return Scene(
+            coarse,
+            mu=tuple(mu),
+            f=(data[0], data[1]),
+            g=data[2],
+            active_c=scene.active_c,
+            load_degree=scene.load_degree,
+        )
+    except FastmemError as exc:
+        if cmap is None:
+            raise
+        logger.info("auxiliary coarse mesh: the data do not move to it (%s)", exc)
+        return None
 
 
-def coarse_scenes(scene: Scene, min_vertices: int = NESTED_MIN_VERTICES) -> list:
-    """Chain of coarser scenes, coarsest first, each with at least ``min_vertices``/4 vertices."""
+def coarse_scenes(
+    scene: Scene, min_vertices: int = NESTED_MIN_VERTICES, auxiliary: bool = False
+) -> list:
+    """Chain of coarser scenes, coarsest first, each with at least ``min_vertices``/4 vertices.
+
+    ``auxiliary``: continue with auxiliary coarse meshes where a mesh has no
+    coarser version (see :func:`coarse_scene`).
+    """
     chain = []
     cur = scene
     while cur.mesh.n_vertices >= min_vertices:
-        nxt = coarse_scene(cur)
+        nxt = coarse_scene(cur, auxiliary)
         if nxt is None:
             break
         chain.append(nxt)

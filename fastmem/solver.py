@@ -49,6 +49,9 @@ METHODS = ("inexact", "exact-amg", "exact")
 #: overestimate costs one flux reconstruction more, an underestimate a CG iteration or two.
 HINT_SAFETY = 0.7
 
+#: Nested iteration builds auxiliary coarse meshes for meshes without a coarser version.
+AUXILIARY = True
+
 #: Relative residual (:func:`_relative_residual`) expected of an exact solve at convergence.
 ROUNDOFF_TOL = 1e-9
 
@@ -165,9 +168,12 @@ def solve(
     nested : bool or "auto"
         AMG methods without ``initial``: solve on the chain of coarser meshes
         (:meth:`Mesh.coarser`, down to about 1000 vertices) and prolong each
-        solution as the initial iterate of the next level.  "auto": when a
-        coarser mesh exists and the data can move to it; otherwise the
-        iteration starts from the unconstrained problem.
+        solution as the initial iterate of the next level.  A mesh without a
+        coarser version (read from a file, built from arrays) gets auxiliary
+        coarse meshes from subsets of its vertices (:mod:`fastmem.coarsen`).
+        "auto": when a coarser mesh exists or can be built and the data can
+        move to it; otherwise the iteration starts from the unconstrained
+        problem.  ``False``: always the unconstrained start.
     full_history : bool
         Reconstruct the flux at every history row, so that every row carries
         the guaranteed bound ``eta`` (costly; for studies and tests).
@@ -287,7 +293,7 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
     chain = []
     if init is None and nested is not False:
         t0 = time.perf_counter()
-        chain = coarse_scenes(scene)
+        chain = coarse_scenes(scene, auxiliary=AUXILIARY)
         timings["coarsening"] = time.perf_counter() - t0
         if nested is True and not chain:
             logger.warning("nested=True but this mesh has no usable coarser version")
