@@ -52,6 +52,7 @@ from .bound import evaluate
 from .errors import CyclingError, NumericalError
 from .estimators import combine, global_terms, local_terms
 from .linear import DecoupledStep, GeneralStep, residuals
+from .nested import warm_active_set
 from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
 
 __all__ = ["ADAPTIVE_HISTORY_COLUMNS", "AdaptiveOptions", "newton_amg"]
@@ -302,7 +303,19 @@ def _active_key(active):
 
 
 def newton_amg(
-    scene, step, method, options, max_newton, init, monitor, level, disc_hint, rows, certify=True
+    scene,
+    step,
+    method,
+    options,
+    max_newton,
+    init,
+    monitor,
+    level,
+    disc_hint,
+    rows,
+    certify=True,
+    hint_slack=1.0,
+    prolonged=False,
 ):
     """Newton-min on one mesh with AMG-CG inner solves (``inexact`` or ``exact-amg``).
 
@@ -330,6 +343,16 @@ def newton_amg(
         (default).  ``False`` (intermediate levels of nested iteration, whose
         solutions only serve as initial guesses): the stopping tests use
         ``disc_hint`` and no flux is reconstructed, unless no hint exists.
+    hint_slack : float
+        ``disc_hint`` may underestimate eta_disc by up to this factor (the
+        caller scaled it down so that the inner candidate test does not waste
+        a flux).  Until a fresh value exists, the outer candidate test uses
+        ``hint_slack * disc_hint``, so that a step whose ``eta_lin`` already
+        meets the outer criterion with the true eta_disc is checked instead
+        of followed by a needless Newton step.
+    prolonged : bool
+        ``init`` was prolonged from a coarser level: its first active set is
+        :func:`fastmem.nested.warm_active_set` (else the rule of MATH.md 3.1).
 
     Returns
     -------
@@ -343,7 +366,6 @@ def newton_amg(
 
     mesh = scene.mesh
     interior = mesh.interior_vertices
-    c = scene.active_c
     exact = method == "exact-amg"
     stats = {"amg_setups": 0, "amg_setup_seconds": 0.0, "checks": 0, "skipped_checks": 0}
     ev = _Evaluator(scene)
@@ -359,8 +381,9 @@ def newton_amg(
         active = np.zeros(interior.size, dtype=bool)
     else:
         u1, u2, lam = init
-        active = lam[interior] > c * (u1[interior] - u2[interior])
+        active = warm_active_set(scene, init) if prolonged else scene.active_rule(u1, u2, lam)
     disc_known = disc_hint
+    disc_fresh = False  # disc_known is a hint until the first flux of this level
     level_start = rows["inner_total"][-1] if rows["inner_total"] else 0
     inner_total = level_start
     iterates = []
@@ -479,7 +502,7 @@ def newton_amg(
                 (u1, u2, lam),
             )
             last = (u1, u2, lam, r1, r2, est, local, glob)
-            new_active = lam[interior] > c * (u1[interior] - u2[interior])
+            new_active = scene.active_rule(u1, u2, lam)
             if np.array_equal(new_active, active):
                 if inner.at_roundoff():
                     converged = True
@@ -528,12 +551,14 @@ def newton_amg(
             want_fresh = options.full_history or disc_known is None
             if not want_fresh and certify:
                 cand_inner = roundoff or eta_alg <= g_alg * max(disc_known, eta_lin)
-                cand_outer = eta_lin <= g_lin * disc_known
+                slack = 1.0 if disc_fresh else hint_slack
+                cand_outer = eta_lin <= g_lin * slack * disc_known
                 want_fresh = cand_inner and cand_outer
             disc = disc_known
             if want_fresh:
                 est = ev.full(u1, u2, lam, r1, r2, local, glob)
                 disc = disc_known = est.totals["eta_disc"]
+                disc_fresh = True
             budget = g_alg * max(disc, eta_lin)
             # a solve at round-off meets the criterion even when eta_disc = eta_lin = 0
             inner_ok = eta_alg <= budget or roundoff
@@ -572,7 +597,7 @@ def newton_amg(
                 "iterations without meeting the algebraic criterion (ill-conditioned system?)"
             )
             break
-        active = lam[interior] > c * (u1[interior] - u2[interior])
+        active = scene.active_rule(u1, u2, lam)
     else:
         reason = f"max_newton = {max_newton} reached"
     if not converged:

@@ -176,7 +176,8 @@ class Scene:
         vertices.  The a posteriori bound is exact when g is constant or
         piecewise linear on boundary edges.
     active_c : float
-        Constant c > 0 of the active-set rule ``lambda_a > c * gap_a``.
+        Constant c > 0 of the active-set rule ``lambda_a > c * gap_a``
+        (:meth:`active_rule`, MATH.md 3.1).
     load_degree : int
         Quadrature degree for callable loads (default 5).
 
@@ -377,6 +378,34 @@ class Scene:
             else:
                 self._cache[key] = assemble_stiffness(self.mesh, mu)
         return self._cache[key]
+
+    @property
+    def active_weight(self) -> np.ndarray:
+        """``kappa_a B_a`` at the interior vertices: the weight of lambda in the gap equation.
+
+        ``kappa_a = A_aa / (mu1 A)_aa + A_aa / (mu2 A)_aa`` (``1/mu1 + 1/mu2`` for
+        constant tensions) and ``B_a`` the lumped mass: ``kappa_a B_a lam_a`` is the
+        nodal term of lam in the gap equation ``A w = F_w + kappa B lam`` (MATH.md 3.3),
+        a length like the gap.  Used for the first active set of a prolonged triple
+        (:func:`fastmem.nested.warm_active_set`).
+        """
+        if "kB" not in self._cache:
+            ii = self.mesh.interior_vertices
+            a = self.stiffness.diagonal()[ii]
+            kappa = a / self.weighted_stiffness(1).diagonal()[ii]
+            kappa += a / self.weighted_stiffness(2).diagonal()[ii]
+            self._cache["kB"] = kappa * self.mesh.lumped_mass[ii]
+        return self._cache["kB"]
+
+    def active_rule(self, u1, u2, lam) -> np.ndarray:
+        """Active set ``{a interior : lam_a > c (u1_a - u2_a)}`` of a triple (MATH.md 3.1).
+
+        After a linear step ``gap = 0`` holds exactly on the active set and
+        ``lam = 0`` on the inactive one, so the next set does not depend on c;
+        c only matters for a triple given as ``initial``.
+        """
+        ii = self.mesh.interior_vertices
+        return lam[ii] > self.active_c * (u1[ii] - u2[ii])
 
     @property
     def loads(self) -> tuple[np.ndarray, np.ndarray]:

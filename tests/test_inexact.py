@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from numpy.testing import assert_allclose
 
 import fastmem as fm
 from fastmem.amg import PCG, amg_preconditioner
 from fastmem.errors import ParameterError
-from fastmem.nested import coarse_scenes, interpolation_matrix, prolong_triple
+from fastmem.nested import coarse_scenes, interpolation_matrix, prolong_triple, warm_active_set
 
 MANUFACTURED = [
     pytest.param({"mu": (1.0, 1.0), "kappa": 1.0}, id="mu11-k1"),
@@ -306,3 +307,39 @@ def test_step_limit_is_reported(caplog):
 def test_bad_options_are_refused(kwargs, field):
     with pytest.raises(ParameterError, match=field):
         fm.solve(_default_scene(4), **kwargs)
+
+
+def test_warm_active_weight_is_the_lambda_term_of_the_gap_equation():
+    mesh = fm.Mesh.square(12)
+    ii = mesh.interior_vertices
+    scene = fm.Scene(mesh, mu=(2.0, 3.0), f=(-1.0, 1.0))
+    assert_allclose(scene.active_weight, (1 / 2 + 1 / 3) * mesh.lumped_mass[ii], rtol=1e-13)
+    per_tri = fm.Scene(mesh, mu=(np.full(mesh.n_triangles, 2.0), 3.0), f=(-1.0, 1.0))
+    assert_allclose(per_tri.active_weight, scene.active_weight, rtol=1e-13)
+    # kappa B lam > gap: on a vertex with lam > 0 and gap > 0 the lengths decide
+    u1 = np.zeros(mesh.n_vertices)
+    lam = np.zeros(mesh.n_vertices)
+    lam[ii] = 1.0
+    u1[ii] = 0.5 * scene.active_weight  # gap = half the lam term: active
+    u1[ii[0]] = 2.0 * scene.active_weight[0]  # gap twice the lam term: inactive
+    act = warm_active_set(scene, (u1, np.zeros(mesh.n_vertices), lam))
+    assert not act[0]
+    assert act[1:].all()
+    # the rule of MATH.md 3.1 with c = 1 calls every one of them active (lam = 1 > gap)
+    assert scene.active_rule(u1, np.zeros(mesh.n_vertices), lam).all()
+
+
+def test_warm_active_set_saves_newton_steps_on_the_manufactured_scene(monkeypatch):
+    """The prolonged triple's first active set by lengths, not by c = 1 (fewer finest steps)."""
+    import fastmem.adaptive as adaptive
+
+    ms = fm.Manufactured()
+    scene = ms.scene(fm.Mesh.square(256))
+    new = fm.solve(scene)
+    monkeypatch.setattr(adaptive, "warm_active_set", lambda sc, t: sc.active_rule(*t))
+    old = fm.solve(scene)
+    assert new.n_newton < old.n_newton
+    assert new.n_newton <= 4
+    e_new = ms.energy_error(scene.mesh, new.u1, new.u2)
+    e_old = ms.energy_error(scene.mesh, old.u1, old.u2)
+    assert abs(e_new - e_old) <= 0.01 * e_old
