@@ -51,11 +51,11 @@ def _prepare(scene):
 
 def run_one(scene, method, nested, path, repeat, budget, ms=None):
     import fastmem as fm
+    from fastmem.loaddata import forget
 
     def once():
         # every repetition evaluates the loads afresh (their values are cached on the scene)
-        for key in [k for k in scene._cache if k.startswith("load")] + ["F"]:
-            scene._cache.pop(key, None)
+        forget(scene)
         return fm.solve(scene, method=method, path=path, nested=nested, estimate=True)
 
     r, t = timed_budget(once, repeat, budget)

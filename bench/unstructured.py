@@ -10,7 +10,9 @@ Newton steps per level and on the finest mesh, CG iterations, time (median
 of ``--repeat``), time in Poisson units (``bench._common.poisson_unit`` on
 the same mesh), the time spent building the coarse meshes, the bound eta
 and, for the manufactured scene, the true energy error.  Each repetition
-starts from a new scene (loads evaluated and coarse meshes built again).
+starts from a new scene on the same fine mesh: loads evaluated and coarse
+meshes built again; the fine mesh's topology and sparsity pattern are built
+once, before the timings (as in ``bench.contact_solve``).
 
     python -m bench.unstructured [--quick] [--sizes 256 512 1024]
 """

@@ -16,8 +16,8 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 
-from .coarsen import coarse_mesh, locate
-from .errors import FastmemError
+from .coarsen import coarse_mesh, inside, locate
+from .errors import FastmemError, MeshError
 from .scene import Scene
 
 __all__ = ["coarse_scenes", "interpolation_matrix", "prolong_triple", "warm_active_set"]
@@ -31,22 +31,30 @@ NESTED_MIN_VERTICES = 1000
 def interpolation_matrix(coarse, fine) -> sp.csr_matrix:
     """Sparse P1 interpolation ``I`` with ``(I v)_a = v_coarse(x_a)`` at the fine vertices.
 
-    A fine vertex outside the coarse mesh (across a curved boundary of an
-    auxiliary coarse mesh) takes the value at the nearest point of a nearby
-    coarse triangle, or, when no coarse triangle is near, of the nearest
-    coarse vertex.
+    Every fine vertex must lie in the coarse mesh (MeshError otherwise),
+    except for auxiliary coarse meshes (:mod:`fastmem.coarsen`), which
+    approximate a curved boundary from inside: there a fine vertex outside
+    takes the value at the clipped barycentric coordinates of the nearest
+    candidate triangle of its bucket, or of the nearest coarse vertex when
+    its bucket holds no triangle.
     """
     t = coarse.triangles
     tri, bary = locate(coarse, fine.vertices)
-    lost = tri < 0
-    if lost.any():
-        from scipy.spatial import cKDTree
-
-        nearest = cKDTree(coarse.vertices).query(fine.vertices[lost])[1]
+    if coarse._cache.get("auxiliary", False):
+        lost = tri < 0
         cols = t[np.maximum(tri, 0)]
-        cols[lost] = nearest[:, None]
-        bary[lost] = (1.0, 0.0, 0.0)
+        if lost.any():
+            from scipy.spatial import cKDTree
+
+            cols[lost] = cKDTree(coarse.vertices).query(fine.vertices[lost])[1][:, None]
+            bary[lost] = (1.0, 0.0, 0.0)
     else:
+        ok, tri = inside(coarse, fine.vertices)
+        if not ok.all():
+            k = int(np.flatnonzero(~ok)[0])
+            raise MeshError(
+                f"fine vertex {k} at {fine.vertices[k].tolist()} is outside the coarse mesh"
+            )
         cols = t[tri]
     rows = np.repeat(np.arange(fine.n_vertices), 3)
     mat = sp.csr_matrix(
@@ -92,7 +100,10 @@ def coarse_scene(scene: Scene, auxiliary: bool = False) -> Scene | None:
     if coarse is None:
         return None
     mu = [_transfer_mu(m, fine, coarse, cmap) for m in (scene.mu1, scene.mu2)]
-    data = [_transfer_nodal(d, fine, coarse, cmap) for d in (scene.f1, scene.f2, scene.g)]
+    g = scene.g
+    if cmap is not None and not (callable(g) or isinstance(g, float)):
+        g = scene.boundary_values  # the validated values (zero inside), not raw entries
+    data = [_transfer_nodal(d, fine, coarse, cmap) for d in (scene.f1, scene.f2, g)]
     if any(x is None for x in mu + data):
         logger.info("nested iteration: the data of this scene cannot move to a coarser mesh")
         return None
@@ -146,8 +157,13 @@ def warm_active_set(scene: Scene, triple) -> np.ndarray:
     """First active set on a level from the triple prolonged from the coarser level.
 
     ``{a interior : kappa_a B_a lam_a > gap_a}`` (:attr:`Scene.active_weight`):
-    both sides are lengths, the term of lam in the gap equation against the
-    gap.  The rule of MATH.md 3.1 with c = 1 compares a pressure with a length;
+    a heuristic for the initial active set of Newton-min (PDAS may start from
+    any set), chosen so that both sides are lengths, the term of lam in the
+    gap equation against the gap (up to the factor ``A_aa``, about 4 on
+    structured meshes, by which it changes the gap at its own vertex:
+    dividing by it was measured too and cost 3 more Newton steps in total on
+    the default scene at n = 512 and 1024).  ``scene.active_c`` is not
+    used here.  The rule of MATH.md 3.1 with c = 1 compares a pressure with a length;
     on a prolonged triple (where lam > 0 and gap > 0 overlap on the coarse
     front) it made every fine vertex with interpolated lam > 0 active and the
     next Newton steps retreat from the overshoot one layer at a time

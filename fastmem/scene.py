@@ -177,7 +177,8 @@ class Scene:
         piecewise linear on boundary edges.
     active_c : float
         Constant c > 0 of the active-set rule ``lambda_a > c * gap_a``
-        (:meth:`active_rule`, MATH.md 3.1).
+        (:meth:`active_rule`, MATH.md 3.1); it decides only the first active set
+        of a triple given as ``initial``.
     load_degree : int
         Quadrature degree for callable loads (default 5).
 
@@ -383,10 +384,12 @@ class Scene:
     def active_weight(self) -> np.ndarray:
         """``kappa_a B_a`` at the interior vertices: the weight of lambda in the gap equation.
 
-        ``kappa_a = A_aa / (mu1 A)_aa + A_aa / (mu2 A)_aa`` (``1/mu1 + 1/mu2`` for
-        constant tensions) and ``B_a`` the lumped mass: ``kappa_a B_a lam_a`` is the
-        nodal term of lam in the gap equation ``A w = F_w + kappa B lam`` (MATH.md 3.3),
-        a length like the gap.  Used for the first active set of a prolonged triple
+        ``kappa_a = A_aa / (mu1 A)_aa + A_aa / (mu2 A)_aa`` and ``B_a`` the lumped
+        mass.  For constant tensions ``kappa = 1/mu1 + 1/mu2`` and ``kappa_a B_a lam_a``
+        is the nodal term of lam in the gap equation ``A w = F_w + kappa B lam``
+        (MATH.md 3.3), a length like the gap; for per-triangle tensions the diagonal
+        ratios are vertex averages of ``1/mu_i`` (a scale, not an equation).  Used
+        for the first active set of a prolonged triple
         (:func:`fastmem.nested.warm_active_set`).
         """
         if "kB" not in self._cache:
@@ -402,7 +405,9 @@ class Scene:
 
         After a linear step ``gap = 0`` holds exactly on the active set and
         ``lam = 0`` on the inactive one, so the next set does not depend on c;
-        c only matters for a triple given as ``initial``.
+        c only matters for a triple given as ``initial`` (the first active set
+        of a triple prolonged by nested iteration is chosen by
+        :func:`fastmem.nested.warm_active_set` instead).
         """
         ii = self.mesh.interior_vertices
         return lam[ii] > self.active_c * (u1[ii] - u2[ii])

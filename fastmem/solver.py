@@ -313,11 +313,11 @@ def _solve_amg(scene, method, path, opts, max_newton, init, nested, monitor, est
             triple = prolong_triple(sc, levels[lev - 1], triple)
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             disc_hint = None if out["eta_disc"] is None else out["eta_disc"] * h_ratio
-        step = make_step(sc, path)
         # intermediate levels only make initial guesses: no flux there (see newton_amg)
         certify = lev == 0 or lev == len(levels) - 1
         if certify and (estimate or method == "inexact"):
-            expect_estimates(sc)
+            expect_estimates(sc)  # before the step's load vectors: one pass over the data
+        step = make_step(sc, path)
         slack = 1.0
         if certify and disc_hint is not None:
             # a hint above the true value triggers a flux too early (a wasted one) ...

@@ -61,6 +61,59 @@ def test_coarse_mesh_covers_the_domain_with_fine_vertices(make):
     assert quality(coarse) > 0.3 * quality(fine)
 
 
+def _cut(mesh, drop):
+    """Mesh without the triangles whose centroid satisfies ``drop(x, y)``."""
+    cen = mesh.vertices[mesh.triangles].mean(axis=1)
+    return fm.Mesh._compact(mesh.vertices, mesh.triangles[~drop(cen[:, 0], cen[:, 1])])
+
+
+@pytest.mark.parametrize(
+    "drop",
+    [
+        lambda x, y: (np.abs(x) < 0.25) & (np.abs(y) < 0.25),  # square hole
+        lambda x, y: np.abs(x) < 0.2,  # two strips, 0.4 apart
+        lambda x, y: (np.abs(x) < 0.1) & (y > -0.5),  # a slit two cells wide
+    ],
+    ids=["hole", "two-parts", "slit"],
+)
+def test_coarse_mesh_stays_inside_holes_gaps_and_slits(drop):
+    fine = _cut(fm.Mesh.square(24), drop)
+    coarse = coarse_mesh(fine).mesh
+    assert_allclose(coarse.areas.sum(), fine.areas.sum(), rtol=1e-12)
+    probes = coarse.vertices[coarse.triangles].mean(axis=1)
+    assert not drop(probes[:, 0], probes[:, 1]).any()
+
+
+def test_interpolation_refuses_points_outside_a_non_auxiliary_coarse_mesh():
+    coarse = fm.Mesh.square(4)
+    fine = fm.Mesh(1.01 * fm.Mesh.square(8).vertices, fm.Mesh.square(8).triangles)
+    with pytest.raises(fm.errors.MeshError, match="outside the coarse mesh"):
+        interpolation_matrix(coarse, fine)
+
+
+def test_coarse_mesh_failure_falls_back_to_none(monkeypatch):
+    import fastmem.coarsen as coarsen
+
+    def broken(*args, **kwargs):
+        raise MemoryError("no room for Qhull")
+
+    monkeypatch.setattr(coarsen, "_coarse_mesh", broken)
+    fine = perturbed_square(40, 0.2)
+    assert coarse_mesh(fine) is None
+    r = fm.solve(fm.Scene(fine, f=(-1.0, 1.0), g=0.1))  # unconstrained start instead
+    assert r.converged
+    assert len(r.parameters["solver"]["levels"]) == 1
+
+
+def test_nodal_g_moves_by_its_boundary_values():
+    fine = perturbed_square(40, 0.2)
+    g = np.full(fine.n_vertices, -5.0)  # interior entries are ignored by the Scene
+    g[fine.boundary_vertices] = 0.1
+    chain = coarse_scenes(fm.Scene(fine, f=(-1.0, 1.0), g=g), auxiliary=True)
+    top = chain[-1]
+    assert_allclose(top.boundary_values[top.mesh.boundary_vertices], 0.1)
+
+
 def test_coarse_mesh_keeps_corners():
     fine = _plain(fm.Mesh.lshape(16))
     coarse = coarse_mesh(fine).mesh
@@ -103,6 +156,7 @@ def test_data_move_to_the_auxiliary_chain(rng):
     assert_allclose(top.f1, f1[idx])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["default", "manufactured"])
 def test_auxiliary_nested_iteration_saves_newton_steps(kind):
     fine = perturbed_square(96, 0.2)

@@ -314,8 +314,18 @@ def test_warm_active_weight_is_the_lambda_term_of_the_gap_equation():
     ii = mesh.interior_vertices
     scene = fm.Scene(mesh, mu=(2.0, 3.0), f=(-1.0, 1.0))
     assert_allclose(scene.active_weight, (1 / 2 + 1 / 3) * mesh.lumped_mass[ii], rtol=1e-13)
-    per_tri = fm.Scene(mesh, mu=(np.full(mesh.n_triangles, 2.0), 3.0), f=(-1.0, 1.0))
-    assert_allclose(per_tri.active_weight, scene.active_weight, rtol=1e-13)
+    # per-triangle tensions: kappa_a = A_aa / (mu1 A)_aa + A_aa / (mu2 A)_aa
+    mu1 = 1.0 + mesh.vertices[mesh.triangles].mean(axis=1)[:, 0] ** 2
+    per_tri = fm.Scene(mesh, mu=(mu1, 3.0), f=(-1.0, 1.0))
+    assert not isinstance(per_tri.mu1, float)
+    grads = mesh.gradients  # (M, 3, 2): local stiffness diagonal |K| |grad phi_i|^2
+    local = mesh.areas[:, None] * (grads**2).sum(axis=2)
+    a_plain = np.bincount(mesh.triangles.ravel(), local.ravel(), minlength=mesh.n_vertices)
+    a_mu1 = np.bincount(
+        mesh.triangles.ravel(), (mu1[:, None] * local).ravel(), minlength=mesh.n_vertices
+    )
+    kappa = a_plain[ii] / a_mu1[ii] + 1.0 / 3.0
+    assert_allclose(per_tri.active_weight, kappa * mesh.lumped_mass[ii], rtol=1e-12)
     # kappa B lam > gap: on a vertex with lam > 0 and gap > 0 the lengths decide
     u1 = np.zeros(mesh.n_vertices)
     lam = np.zeros(mesh.n_vertices)
@@ -329,6 +339,7 @@ def test_warm_active_weight_is_the_lambda_term_of_the_gap_equation():
     assert scene.active_rule(u1, np.zeros(mesh.n_vertices), lam).all()
 
 
+@pytest.mark.slow
 def test_warm_active_set_saves_newton_steps_on_the_manufactured_scene(monkeypatch):
     """The prolonged triple's first active set by lengths, not by c = 1 (fewer finest steps)."""
     import fastmem.adaptive as adaptive

@@ -80,8 +80,43 @@ def test_p1_load_moments_are_exact_and_cached(rng):
                 ref[:, i, j] += ft[:, k] * _bary_integral(powers)
     ref *= mesh.areas[:, None, None]
     assert_allclose(out["moments"], ref, rtol=1e-12, atol=1e-16)
-    assert loaddata.integrals(scene, 1, moments=True) is out
+    # ... and match the degree-5 quadrature of the product (exact for cubics)
+    bary, w = triangle_rule(5)
+    fw = (ft @ bary.T) * w
+    quad = np.einsum("mq,qi,qj->mij", fw, bary, bary) * mesh.areas[:, None, None]
+    assert_allclose(out["moments"], quad, rtol=1e-12, atol=1e-16)
     assert np.all(out["osc"] == 0.0)
+    # nothing per triangle is kept for P1 data; the load vector is
+    assert "moments" not in scene._cache["load_integrals1"]
+    assert loaddata.integrals(scene, 1, moments=False)["F"] is out["F"]
+
+
+def test_callable_raising_in_a_later_block_leaves_no_partial_cache(monkeypatch):
+    monkeypatch.setattr(loaddata, "BLOCK", 16)
+    mesh = fm.Mesh.square(8)
+    calls = []
+
+    def f(x, y):
+        calls.append(1)
+        if len(calls) == 3:
+            raise ValueError("boom")
+        return x + y
+
+    scene = fm.Scene(mesh, f=(f, 0.0))
+    with pytest.raises(fm.errors.DataError, match="f1"):
+        loaddata.integrals(scene, 1, moments=True)
+    assert "load_integrals1" not in scene._cache
+
+
+def test_oscillation_of_huge_data_does_not_overflow():
+    mesh = fm.Mesh.square(6)
+    base = fm.Scene(mesh, f=(lambda x, y: np.exp(x) * y, 0.0))
+    huge = fm.Scene(mesh, f=(lambda x, y: 1e300 * np.exp(x) * y, 0.0))
+    small = loaddata.integrals(base, 1, moments=True)["osc"]
+    with np.errstate(over="raise"):
+        big = loaddata.integrals(huge, 1, moments=True)["osc"]
+    assert np.isfinite(big).all()
+    assert_allclose(big, 1e300 * small, rtol=1e-12)
 
 
 def test_solve_evaluates_a_callable_load_once_per_mesh():
@@ -96,6 +131,20 @@ def test_solve_evaluates_a_callable_load_once_per_mesh():
     # a second bound on the same scene reuses the cached moments and oscillation
     fm.estimate(scene, r.u1, r.u2, r.lam)
     assert f.points == mesh.n_triangles * nq
+
+
+def test_nested_solve_evaluates_a_callable_once_per_level():
+    mesh = fm.Mesh.square(64)
+    f = Counting()
+    scene = fm.Scene(mesh, f=(-1.0, f), g=0.1)
+    nq = triangle_rule(scene.load_degree)[0].shape[0]
+    r = fm.solve(scene, estimate=True)
+    levels = r.parameters["solver"]["levels"]
+    assert len(levels) >= 2
+    # level l is Mesh.square(64 / 2^(L-1-l)) with 2 n^2 triangles: one pass each
+    sizes = [2 * (64 // 2 ** (len(levels) - 1 - k)) ** 2 for k in range(len(levels))]
+    assert sizes[-1] == mesh.n_triangles
+    assert f.points == sum(sizes) * nq
 
 
 def test_loads_first_then_moments():
