@@ -157,9 +157,10 @@ def _coarse_mesh(mesh):
     probes = [corner_pts.mean(axis=1)] + [
         0.5 * (corner_pts[:, a] + corner_pts[:, b]) for a, b in ((0, 1), (1, 2), (2, 0))
     ]
-    ok, fine_tri = inside(mesh, probes[0])
-    for p in probes[1:]:
-        ok &= inside(mesh, p)[0]
+    ok, fine_tri = inside(mesh, np.concatenate(probes))  # one bucket grid for all probes
+    nt = tri.shape[0]
+    ok = ok.reshape(4, nt).all(axis=0)
+    fine_tri = fine_tri[:nt]
     e1 = corner_pts[:, 1] - corner_pts[:, 0]
     e2 = corner_pts[:, 2] - corner_pts[:, 0]
     area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
