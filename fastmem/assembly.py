@@ -40,7 +40,6 @@ import scipy.sparse as sp
 from .errors import DataError, MeshError
 from .kernels import assembly as _k
 from .kernels import sparsity as _sp
-from .quadrature import quadrature_points, triangle_rule
 
 __all__ = [
     "DEFAULT_LOAD_DEGREE",
@@ -189,13 +188,10 @@ def assemble_load(mesh, f, degree: int = DEFAULT_LOAD_DEGREE, name: str = "f") -
     ndarray of shape (N,)
     """
     pp, pt, pl = mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local
-    if callable(f):
-        bary, w = triangle_rule(degree)
-        x, y = quadrature_points(mesh.vertices, mesh.triangles, bary)
-        fv = evaluate_callable(f, x, y, name)
-        local = (fv * w) @ bary  # (M, 3): sum_q w_q f(x_q) phi_i(x_q)
-        local *= mesh.areas[:, None]
-        return _k.gather_vector(np.ascontiguousarray(local), pp, pt, pl)
+    if callable(f):  # blocked pass over the quadrature points (shared with the estimators)
+        from .loaddata import callable_integrals
+
+        return callable_integrals(mesh, f, degree, name)["F"]
     arr = np.asarray(f, dtype=np.float64)
     if arr.ndim == 0:
         return float(arr) * mesh.lumped_mass

@@ -33,7 +33,7 @@ from .assembly import assemble_load, evaluate_callable
 from .kernels import assembly as _k
 from .quadrature import quadrature_points, triangle_rule
 
-__all__ = ["expect_estimates", "forget", "integrals"]
+__all__ = ["callable_integrals", "expect_estimates", "forget", "integrals"]
 
 #: Triangles per block when a callable is evaluated: bounds the (block, n_points)
 #: temporaries (coordinates, values, products) to a few tens of MB.
@@ -125,9 +125,23 @@ def _moments_block(fw, bary, areas) -> np.ndarray:
 
 
 def _callable(scene, i, f, name, want_all) -> dict:
-    mesh = scene.mesh
+    out = callable_integrals(scene.mesh, f, scene.load_degree, name, want_all)
+    if want_all:
+        mu = scene.mu1 if i == 1 else scene.mu2
+        out["osc"] = (scene.mesh.diameters / math.pi) * out.pop("osc_norm") / np.sqrt(mu)
+    return out
+
+
+def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
+    """One blocked pass of the callable ``f(x, y)`` over the points of the rule of ``degree``.
+
+    Returns ``{"F": load vector}``, with ``want_all`` also ``"moments"`` (M, 3, 3)
+    and ``"osc_norm"`` (M,), the norms ``||f - Pi_K f||_K`` of the oscillation.
+    The single implementation behind :func:`fastmem.assembly.assemble_load`
+    (callables) and :func:`integrals`.
+    """
     m = mesh.n_triangles
-    bary, w = triangle_rule(scene.load_degree)
+    bary, w = triangle_rule(degree)
     local = np.empty((m, 3))
     if want_all:
         mom = np.empty((m, 3, 3))
@@ -155,7 +169,6 @@ def _callable(scene, i, f, name, want_all) -> dict:
     vec = _k.gather_vector(local, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local)
     out = {"F": vec}
     if want_all:
-        mu = scene.mu1 if i == 1 else scene.mu2
         out["moments"] = mom
-        out["osc"] = (mesh.diameters / math.pi) * norm / np.sqrt(mu)
+        out["osc_norm"] = norm
     return out

@@ -72,15 +72,20 @@ def _check_degree(degree) -> int:
     return degree
 
 
-def _real_array(value, name: str) -> np.ndarray:
-    """Return ``value`` as a float64 array, or raise :class:`DataError` naming ``name``."""
+def _checked_array(value, name: str, kinds: str, what: str) -> np.ndarray:
+    """Return ``np.asarray(value)`` if its dtype kind is in ``kinds``, else raise DataError."""
     try:
         arr = np.asarray(value)
     except Exception as exc:
         raise DataError(f"{name} cannot be converted to an array: {exc}") from exc
-    if arr.dtype.kind not in "iuf":
-        raise DataError(f"{name} must be real numbers, got dtype {arr.dtype}")
-    return np.asarray(arr, dtype=np.float64)
+    if arr.dtype.kind not in kinds:
+        raise DataError(f"{name} must {what}, got dtype {arr.dtype}")
+    return arr
+
+
+def _real_array(value, name: str) -> np.ndarray:
+    """Return ``value`` as a float64 array, or raise :class:`DataError` naming ``name``."""
+    return np.asarray(_checked_array(value, name, "iuf", "be real numbers"), dtype=np.float64)
 
 
 def _orbit3(a: float) -> np.ndarray:
@@ -221,12 +226,7 @@ def quadrature_points(
     """
     vertices = _real_array(vertices, "vertices")
     bary = _real_array(bary, "bary")
-    try:
-        triangles = np.asarray(triangles)
-    except Exception as exc:
-        raise DataError(f"triangles cannot be converted to an array: {exc}") from exc
-    if triangles.dtype.kind not in "iu":
-        raise DataError(f"triangles must have an integer dtype, got {triangles.dtype}")
+    triangles = _checked_array(triangles, "triangles", "iu", "have an integer dtype")
     if vertices.ndim != 2 or vertices.shape[1] != 2:
         raise DataError(f"vertices must have shape (N, 2), got {vertices.shape}")
     if triangles.ndim != 2 or triangles.shape[1] != 3:
