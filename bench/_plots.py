@@ -9,7 +9,7 @@ on the Agg canvas (no pyplot, no window, no global backend change).
 --figures`` redraws every figure from the JSON files.
 """
 
-from bench._common import progress
+import sys
 
 MISSING = "matplotlib not installed: no figure (pip install 'fastmem[bench]')"
 
@@ -298,6 +298,6 @@ def figure(name, payload, path):
     try:
         import matplotlib  # noqa: F401
     except ImportError:
-        progress(MISSING)
+        print(MISSING, file=sys.stderr, flush=True)  # not _common.progress: _common imports us
         return None
     return fn(payload, path)

@@ -26,8 +26,10 @@ that iterates many times with one operator may drop the zeros once
 
 Load vectors: a constant ``f`` is integrated exactly as ``f B`` (no
 quadrature); per-vertex values (P1 data) exactly as ``M f``; a callable
-``f(x, y)`` by a quadrature rule of degree ``degree`` (default 5), evaluated in
-one vectorised call on all quadrature points.
+``f(x, y)`` by a quadrature rule of degree ``degree`` (default 5), evaluated
+vectorised on the quadrature points, block by block
+(:func:`fastmem.callables.callable_integrals`; :func:`evaluate_callable` is
+re-exported from there).
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import logging
 import numpy as np
 import scipy.sparse as sp
 
+from .callables import callable_integrals, evaluate_callable
 from .errors import DataError, MeshError
 from .kernels import assembly as _k
 from .kernels import sparsity as _sp
@@ -137,37 +140,6 @@ def _fused(mesh, kernel, *args):
     return _csr(mesh, kernel(*args[:-1], coef, indptr, offsets, *patches))
 
 
-def evaluate_callable(f, x, y, name="f"):
-    """Evaluate a user callable ``f(x, y)`` on arrays, checking shape and finiteness."""
-    try:
-        val = f(x, y)
-    except Exception as exc:
-        raise DataError(f"{name}(x, y) raised {type(exc).__name__}: {exc}") from exc
-    try:
-        raw = np.asarray(val)
-    except Exception as exc:
-        raise DataError(f"{name}(x, y) returned a value that is not an array: {exc}") from exc
-    if raw.dtype.kind not in "iufb":
-        raise DataError(
-            f"{name}(x, y) must return real numbers, got {type(val).__name__} "
-            f"with dtype {raw.dtype}"
-        )
-    val = raw.astype(np.float64) if raw.ndim else np.full(x.shape, float(raw))
-    if val.shape != x.shape:
-        try:
-            val = np.broadcast_to(val, x.shape)
-        except ValueError as exc:
-            raise DataError(
-                f"{name}(x, y) returned shape {val.shape}, expected {x.shape} "
-                "(evaluate elementwise on the arrays x and y)"
-            ) from exc
-    if not np.isfinite(val).all():
-        raise DataError(
-            f"{name}(x, y) returned NaN or inf at {int((~np.isfinite(val)).sum())} points"
-        )
-    return val
-
-
 def assemble_load(mesh, f, degree: int = DEFAULT_LOAD_DEGREE, name: str = "f") -> np.ndarray:
     """Load vector ``F_a = (f, psi_a)``.
 
@@ -189,8 +161,6 @@ def assemble_load(mesh, f, degree: int = DEFAULT_LOAD_DEGREE, name: str = "f") -
     """
     pp, pt, pl = mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local
     if callable(f):  # blocked pass over the quadrature points (shared with the estimators)
-        from .loaddata import callable_integrals
-
         return callable_integrals(mesh, f, degree, name)["F"]
     arr = np.asarray(f, dtype=np.float64)
     if arr.ndim == 0:

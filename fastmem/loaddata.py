@@ -12,9 +12,11 @@ For a callable load all three come from its values at the points of one
 quadrature rule (degree ``scene.load_degree``).  A user callable may be
 expensive, so :func:`integrals` evaluates it once, block by block, and
 computes everything asked for from the same values; the results are cached on
-the scene.  Whether the moments and the oscillation are wanted is known before
-the first evaluation: :func:`expect_estimates` (called by the solver when a
-bound will be computed) makes the first call build all three; without it
+the scene.  The pass itself is :func:`fastmem.callables.callable_integrals`
+(re-exported here), which :func:`fastmem.assembly.assemble_load` uses too.
+Whether the moments and the oscillation are wanted is known before the first
+evaluation: :func:`expect_estimates` (called by the solver when a bound will
+be computed) makes the first call build all three; without it
 (``estimate=False`` with the exact solver) only the load vector is built and
 nothing is stored per triangle.
 
@@ -29,15 +31,10 @@ import math
 
 import numpy as np
 
-from .assembly import assemble_load, evaluate_callable
-from .kernels import assembly as _k
-from .quadrature import quadrature_points, triangle_rule
+from .assembly import assemble_load
+from .callables import callable_integrals
 
 __all__ = ["callable_integrals", "expect_estimates", "forget", "integrals"]
-
-#: Triangles per block when a callable is evaluated: bounds the (block, n_points)
-#: temporaries (coordinates, values, products) to a few tens of MB.
-BLOCK = 1 << 17
 
 _WANT = "loads_for_estimates"
 
@@ -117,58 +114,9 @@ def _p1_moments(mesh, f) -> np.ndarray:
     return mom
 
 
-def _moments_block(fw, bary, areas) -> np.ndarray:
-    nq = bary.shape[0]
-    outer = (bary[:, :, None] * bary[:, None, :]).reshape(nq, 9)
-    mom = (fw @ outer) * areas[:, None]
-    return mom.reshape(-1, 3, 3)
-
-
 def _callable(scene, i, f, name, want_all) -> dict:
     out = callable_integrals(scene.mesh, f, scene.load_degree, name, want_all)
     if want_all:
         mu = scene.mu1 if i == 1 else scene.mu2
         out["osc"] = (scene.mesh.diameters / math.pi) * out.pop("osc_norm") / np.sqrt(mu)
-    return out
-
-
-def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
-    """One blocked pass of the callable ``f(x, y)`` over the points of the rule of ``degree``.
-
-    Returns ``{"F": load vector}``, with ``want_all`` also ``"moments"`` (M, 3, 3)
-    and ``"osc_norm"`` (M,), the norms ``||f - Pi_K f||_K`` of the oscillation.
-    The single implementation behind :func:`fastmem.assembly.assemble_load`
-    (callables) and :func:`integrals`.
-    """
-    m = mesh.n_triangles
-    bary, w = triangle_rule(degree)
-    local = np.empty((m, 3))
-    if want_all:
-        mom = np.empty((m, 3, 3))
-        norm = np.empty(m)  # ||f - Pi_K f||_K
-    for start in range(0, m, BLOCK):
-        stop = min(start + BLOCK, m)
-        x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
-        fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
-        fw = fv * w
-        avg = fw @ bary  # (m_b, 3): (f, phi_j)_K / |K|
-        areas = mesh.areas[start:stop]
-        local[start:stop] = avg * areas[:, None]
-        if want_all:
-            mom[start:stop] = _moments_block(fw, bary, areas)
-            # L2(K) projection onto P1: M_K^{-1} = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]
-            # => coefficients c = 12 avg - 3 sum(avg); the oscillation is summed as
-            # squares of f - Pi_K f at the points (free of cancellation, never negative)
-            # (in units of max |f| per triangle: no overflow for data near the float range)
-            scale = np.abs(fv).max(axis=1)
-            scale[scale == 0.0] = 1.0
-            avg_s = avg / scale[:, None]
-            coef = 12.0 * avg_s - 3.0 * avg_s.sum(axis=1, keepdims=True)
-            diff = fv / scale[:, None] - coef @ bary.T
-            norm[start:stop] = scale * np.sqrt(((diff * diff) @ w) * areas)
-    vec = _k.gather_vector(local, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local)
-    out = {"F": vec}
-    if want_all:
-        out["moments"] = mom
-        out["osc_norm"] = norm
     return out

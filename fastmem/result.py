@@ -231,14 +231,18 @@ class Result:
             return None
         return {k: v for k, v in self.estimate.totals.items() if k != "eta"}
 
+    # The writers live in fastmem.archive_write, which does not import this module;
+    # fastmem.archive imports it to build loaded Results (no import circle).
     def save(self, path) -> None:
         """Write the result to an HDF5 archive atomically (see :func:`fastmem.archive.save`)."""
-        from .archive import save
+        from .archive_write import write_archive
 
-        save(self, path)
+        check_result(self)  # fields may have been reassigned since construction
+        write_archive(self, path)
 
     def export(self, path) -> None:
         """Write mesh and nodal fields to a VTU/XDMF file through meshio."""
-        from .archive import export
+        from .archive_write import write_export
 
-        export(self, path)
+        check_result(self)
+        write_export(self, path)

@@ -11,7 +11,7 @@ import pytest
 h5py = pytest.importorskip("h5py")
 meshio = pytest.importorskip("meshio")
 
-from fastmem import archive  # noqa: E402
+from fastmem import archive, archive_write  # noqa: E402
 from fastmem.errors import ArchiveError, ParameterError  # noqa: E402
 from fastmem.mesh import Mesh  # noqa: E402
 from fastmem.result import Estimate, Result  # noqa: E402
@@ -223,7 +223,7 @@ def _boom(*args, **kwargs):
 
 
 def test_interrupted_write_leaves_nothing(tmp_path, result, monkeypatch):
-    monkeypatch.setattr(archive, "_write_history", _boom)
+    monkeypatch.setattr(archive_write, "_write_history", _boom)
     with pytest.raises(RuntimeError, match="simulated crash"):
         archive.save(result, tmp_path / "run.h5")
     assert os.listdir(tmp_path) == []
@@ -233,7 +233,7 @@ def test_interrupted_write_keeps_old_archive(tmp_path, mesh, seed, monkeypatch):
     path = tmp_path / "run.h5"
     archive.save(make_result(mesh, seed), path)
     before = path.read_bytes()
-    monkeypatch.setattr(archive, "_write_history", _boom)
+    monkeypatch.setattr(archive_write, "_write_history", _boom)
     with pytest.raises(RuntimeError, match="simulated crash"):
         archive.save(make_result(mesh, seed + 1), path)
     assert path.read_bytes() == before

@@ -31,7 +31,7 @@ from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 
 import fastmem as fm
-from fastmem import archive
+from fastmem import archive, archive_write
 from fastmem.errors import FastmemError, InputTypeError, MeshError, MeshWarning
 
 # Newton-min steps allowed per solve: the guard against endless iterations.
@@ -986,9 +986,9 @@ def test_interrupted_overwrite_keeps_old_archive(
     solved_other.save(path)
     before = path.read_bytes()
     if stage.startswith("os."):
-        monkeypatch.setattr(archive.os, stage[3:], failure)
+        monkeypatch.setattr(archive_write.os, stage[3:], failure)
     else:
-        monkeypatch.setattr(archive, stage, failure)
+        monkeypatch.setattr(archive_write, stage, failure)
     with pytest.raises(expected):
         solved.save(path)
     monkeypatch.undo()

@@ -6,7 +6,7 @@ from meshes import perturbed_square
 from numpy.testing import assert_allclose
 
 import fastmem as fm
-from fastmem import loaddata
+from fastmem import callables, loaddata
 from fastmem.assembly import assemble_load
 from fastmem.quadrature import quadrature_points, triangle_rule
 
@@ -39,9 +39,9 @@ def _reference(mesh, f, degree, mu):
     return mom, mesh.diameters / np.pi * norm / np.sqrt(mu)
 
 
-@pytest.mark.parametrize("block", [loaddata.BLOCK, 7])
+@pytest.mark.parametrize("block", [callables.BLOCK, 7])
 def test_integrals_match_plain_reference(rng, block, monkeypatch):
-    monkeypatch.setattr(loaddata, "BLOCK", block)
+    monkeypatch.setattr(callables, "BLOCK", block)
     mesh = perturbed_square(9, 0.3)
     f = Counting()
     scene = fm.Scene(mesh, mu=(1.0, 2.5), f=(1.0, f), load_degree=6)
@@ -92,7 +92,7 @@ def test_p1_load_moments_are_exact_and_cached(rng):
 
 
 def test_callable_raising_in_a_later_block_leaves_no_partial_cache(monkeypatch):
-    monkeypatch.setattr(loaddata, "BLOCK", 16)
+    monkeypatch.setattr(callables, "BLOCK", 16)
     mesh = fm.Mesh.square(8)
     calls = []
 
