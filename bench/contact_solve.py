@@ -76,18 +76,17 @@ def run_one(scene, method, nested, path, repeat, budget, ms=None):
         "eta_alg": r.estimate.totals["eta_alg"],
         "contact_fraction": r.contact_fraction,
     }
+    # every method runs the same levels and writes the same history (fastmem.history)
+    levels = solver["levels"]
+    row["levels"] = levels
+    row["newton_per_level"] = [lv["newton"] for lv in levels]
+    row["newton_total"] = int(sum(row["newton_per_level"]))
+    row["newton_finest"] = r.n_newton
+    row["inner_total"] = int(r.history["inner_total"][-1])
+    row["flux_evaluations"] = int(sum(lv["flux_evaluations"] for lv in levels))
     if method == "exact":
-        row["newton_total"] = row["newton_finest"] = r.n_newton
-        row["inner_total"] = None
         row["factorizations"] = solver["factorizations"]
     else:
-        levels = solver["levels"]
-        row["levels"] = levels
-        row["newton_per_level"] = [lv["newton"] for lv in levels]
-        row["newton_total"] = int(sum(row["newton_per_level"]))
-        row["newton_finest"] = r.n_newton
-        row["inner_total"] = int(r.history["inner_total"][-1])
-        row["flux_evaluations"] = int(sum(lv["flux_evaluations"] for lv in levels))
         row["amg_setups"] = int(sum(lv["amg_setups"] for lv in levels))
     row["safeguard_uses"] = solver.get("safeguard", {}).get("uses")
     if ms is not None:

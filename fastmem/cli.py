@@ -125,12 +125,15 @@ def _build_parser() -> argparse.ArgumentParser:
 
 
 class _Monitor:
-    """Live table of the exact solver: one line per Newton step."""
+    """Live table of a solve: one line per history row (:mod:`fastmem.history`), every method.
 
-    header = f"{'k':>4} {'|A|':>9} {'changed':>9} {'|min(gap,lam)|':>15} {'|R|':>11} {'sec':>8}"
-    line = (
-        "{k:>4d} {n_active:>9d} {n_changed:>9d} {comp_norm:>15.3e} {res_norm:>11.3e} "
-        "{seconds:>8.3f}"
+    ``eta_disc`` and ``eta`` are printed on rows whose flux was reconstructed
+    (a fresh, guaranteed bound of that row's iterate) and left blank elsewhere.
+    """
+
+    header = (
+        f"{'lev':>3} {'k':>3} {'inner':>5} {'total':>6} {'|A|':>8} {'changed':>7} "
+        f"{'eta_disc':>10} {'eta_lin':>10} {'eta_alg':>10} {'eta':>10} {'sec':>7}"
     )
 
     def __init__(self, enabled: bool):
@@ -139,22 +142,21 @@ class _Monitor:
             _out(self.header)
             _out("-" * len(self.header))
 
+    @staticmethod
+    def _number(value, fresh=True) -> str:
+        return f"{value:>10.3e}" if fresh and np.isfinite(value) else " " * 10
+
     def __call__(self, row: dict) -> None:
-        if self.enabled:
-            _out(self.line.format(**row) + ("  (safeguard)" if row.get("safeguard") else ""))
-
-
-class _AdaptiveMonitor(_Monitor):
-    """Live table of the AMG methods: one line per estimator evaluation."""
-
-    header = (
-        f"{'lev':>3} {'k':>3} {'inner':>5} {'total':>6} {'|A|':>8} {'eta_disc':>10} "
-        f"{'eta_lin':>10} {'eta_alg':>10} {'eta':>10} {'sec':>7}"
-    )
-    line = (
-        "{level:>3d} {k:>3d} {inner:>5d} {inner_total:>6d} {n_active:>8d} {eta_disc:>10.3e} "
-        "{eta_lin:>10.3e} {eta_alg:>10.3e} {eta:>10.3e} {seconds:>7.2f}"
-    )
+        if not self.enabled:
+            return
+        fresh = bool(row["fresh_disc"])
+        _out(
+            f"{row['level']:>3d} {row['k']:>3d} {row['inner']:>5d} {row['inner_total']:>6d} "
+            f"{row['n_active']:>8d} {row['n_changed']:>7d} "
+            f"{self._number(row['eta_disc'], fresh)} {self._number(row['eta_lin'])} "
+            f"{self._number(row['eta_alg'])} {self._number(row['eta'], fresh)} "
+            f"{row['seconds']:>7.2f}" + ("  (safeguard)" if row["safeguard"] else "")
+        )
 
 
 def _cmd_run(args) -> int:
@@ -201,7 +203,7 @@ def _cmd_run(args) -> int:
         method=method,
         path=args.path,
         max_newton=args.max_newton,
-        monitor=(_Monitor if method == "exact" else _AdaptiveMonitor)(not args.quiet),
+        monitor=_Monitor(not args.quiet),
         estimate=not args.no_estimate,
         gamma_alg=args.gamma_alg,
         gamma_lin=args.gamma_lin,
@@ -213,14 +215,12 @@ def _cmd_run(args) -> int:
     _out()
     _out(f"  status            {status}")
     _out(f"  linear path       {result.path}")
-    levels = result.parameters["solver"].get("levels")
-    if levels:
-        steps = ", ".join(str(lv["newton"]) for lv in levels)
-        inner = sum(lv["inner"] for lv in levels)
-        _out(f"  Newton steps      {result.n_newton} (per level: {steps})")
-        _out(f"  CG iterations     {inner} (all levels)")
-    else:
-        _out(f"  Newton steps      {result.n_newton}")
+    levels = result.parameters["solver"]["levels"]
+    steps = ", ".join(str(lv["newton"]) for lv in levels)
+    per_level = f" (per level: {steps})" if len(levels) > 1 else ""
+    _out(f"  Newton steps on the finest mesh: {result.n_newton}{per_level}")
+    if result.method != "exact":
+        _out(f"  CG iterations     {sum(lv['inner'] for lv in levels)} (all levels)")
     _out(
         f"  contact fraction  {result.contact_fraction:.4f}  "
         f"({int(result.active.sum())} contact vertices)"

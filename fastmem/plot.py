@@ -144,15 +144,16 @@ def plot_history(result, ax=None):
     Parameters
     ----------
     result : fastmem.Result
-        The result; only ``result.history`` (a dict of 1-D columns) is used.
-        With an ``inner_total`` column (adaptive methods such as
-        ``"inexact"`` and ``"exact-amg"``), the estimator columns ``eta``,
-        ``eta_disc``, ``eta_lin`` and ``eta_alg`` that are present are drawn
-        against the cumulative number of inner iterations, with a dotted
-        vertical line where ``k`` changes (a new Newton step begins) and a
-        dashed one where the mesh ``level`` changes (when recorded).
-        Otherwise (method ``"exact"``), ``comp_norm`` and ``res_norm`` are
-        drawn against the Newton step ``k`` (or the row number without ``k``).
+        The result; only ``result.history`` (a dict of 1-D columns,
+        :mod:`fastmem.history`) is used, the same way for every method: the
+        estimator columns ``eta``, ``eta_disc``, ``eta_lin`` and ``eta_alg``
+        that are present are drawn against the cumulative number of inner
+        iterations ``inner_total`` (against the row number when no CG ran,
+        method ``"exact"``), with a dotted vertical line where ``k`` changes
+        (a new Newton step begins, CG methods only) and a dashed one where the
+        mesh ``level`` changes.  A history without any estimator value (an
+        archive of an older version) shows ``comp_norm`` and ``res_norm``
+        against the row number instead.
     ax : matplotlib.axes.Axes, optional
         Axes to draw on.  By default a new standalone figure with one axes is
         created.
@@ -182,12 +183,18 @@ def plot_history(result, ax=None):
         ax = _new_figure((6.4, 4.8)).add_subplot()
     history = result.history or {}
     ax.set_yscale("log")
-    if "inner_total" in history:
-        x = _column(history, "inner_total")
-        drawn = _plot_curves(ax, history, x, _ESTIMATOR_CURVES)
+    n_rows = max((len(np.ravel(v)) for v in history.values()), default=0)
+    by_inner = (
+        "inner_total" in history and np.nanmax(_column(history, "inner_total"), initial=0) > 0
+    )
+    x = _column(history, "inner_total") if by_inner else np.arange(1.0, n_rows + 1.0)
+    drawn = _plot_curves(ax, history, x, _ESTIMATOR_CURVES)
+    if drawn:
         starts, new_level = _newton_step_starts(history, x)
         labelled = set()
         for start, level in zip(starts, new_level, strict=True):
+            if not (level or by_inner):  # one row per Newton step: no line per step
+                continue
             label = _LEVEL_LABEL if level else _NEWTON_STEP_LABEL
             ax.axvline(
                 start,
@@ -197,12 +204,10 @@ def plot_history(result, ax=None):
                 label="_nolegend_" if label in labelled else label,
             )
             labelled.add(label)
-        ax.set_xlabel("cumulative inner iterations")
+        ax.set_xlabel("cumulative inner iterations" if by_inner else "history row (Newton step)")
         ax.set_ylabel("error estimator")
         ax.set_title("a posteriori estimators")
-    else:
-        n_rows = max((len(np.ravel(v)) for v in history.values()), default=0)
-        x = _column(history, "k") if "k" in history else np.arange(1.0, n_rows + 1.0)
+    else:  # histories written before the estimators were recorded for every method
         drawn = _plot_curves(ax, history, x, _NEWTON_CURVES)
         ax.set_xlabel("Newton step $k$")
         ax.set_ylabel("norm")

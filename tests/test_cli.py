@@ -67,14 +67,19 @@ def test_run_subprocess(tmp_path):
     printed = [ln for ln in proc.stdout.splitlines() if "contact fraction" in ln][0]
     assert float(printed.split()[2]) == pytest.approx(result.contact_fraction, abs=5e-5)
     # one monitor row per estimator evaluation: the archived history, row by row
-    rows = [
-        ln.split()
-        for ln in proc.stdout.splitlines()
-        if ln.strip() and ln.split()[0].isdigit() and len(ln.split()) == 10
-    ]
-    assert [int(r[1]) for r in rows] == result.history["k"].tolist()
-    assert [int(r[3]) for r in rows] == result.history["inner_total"].tolist()
-    assert int(rows[-1][1]) == result.n_newton
+    lines = proc.stdout.splitlines()
+    header = next(ln for ln in lines if ln.split()[:2] == ["lev", "k"])
+    rows = [ln for ln in lines if ln.split() and ln.split()[0].isdigit()]
+    cells = [ln.split()[:6] for ln in rows]
+    assert [int(r[1]) for r in cells] == result.history["k"].tolist()
+    assert [int(r[3]) for r in cells] == result.history["inner_total"].tolist()
+    assert int(cells[-1][1]) == result.n_newton
+    # eta printed exactly on the rows with a fresh bound, blank (not "nan") elsewhere
+    start, end = header.index("eta_alg") + len("eta_alg"), header.rindex("eta") + 3
+    fresh = [bool(ln[start:end].strip()) for ln in rows]
+    assert fresh == result.history["fresh_disc"].astype(bool).tolist()
+    assert "nan" not in proc.stdout
+    assert "Newton steps on the finest mesh" in proc.stdout
 
 
 def test_run_in_process(tmp_path, capsys):

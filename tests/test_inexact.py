@@ -342,7 +342,7 @@ def test_warm_active_weight_is_the_lambda_term_of_the_gap_equation():
 @pytest.mark.slow
 def test_warm_active_set_saves_newton_steps_on_the_manufactured_scene(monkeypatch):
     """The prolonged triple's first active set by lengths, not by c = 1 (fewer finest steps)."""
-    import fastmem.adaptive as adaptive
+    import fastmem.newton as adaptive
 
     ms = fm.Manufactured()
     scene = ms.scene(fm.Mesh.square(256))

@@ -158,23 +158,36 @@ def test_plot_result_show_uses_pyplot(exact, tmp_path, monkeypatch):
 
 
 def test_history_exact(exact):
+    """Method "exact" has the same columns; no CG: the estimators against the row number."""
     ax = plot.plot_history(exact)
     assert ax.get_yscale() == "log"
     lines = curves(ax)
-    assert list(lines) == ["comp_norm", "res_norm"]
+    h = exact.history
+    assert (h["inner_total"] == 0).all()
+    drawn = [n for n in ESTIMATORS if (np.isfinite(h[n]) & (h[n] > 0)).any()]
+    assert drawn == ["eta_lin", "eta_alg"]  # no flux without estimate=True
+    assert list(lines) == drawn
     assert step_lines(ax) == []
-    k = exact.history["k"].astype(float)
+    rows = np.arange(1.0, len(h["k"]) + 1.0)
     for name, line in lines.items():
-        y = exact.history[name]
-        keep = np.isfinite(y) & (y > 0)
-        assert_array_equal(line.get_xdata(), k[keep])
-        assert_array_equal(line.get_ydata(), y[keep])
-    # the converged step has comp_norm exactly 0: masked, not a crash
-    assert exact.history["comp_norm"][-1] == 0.0
-    assert len(lines["comp_norm"].get_xdata()) == len(k) - 1
-    assert "Newton step" in ax.get_xlabel()
+        keep = np.isfinite(h[name]) & (h[name] > 0)
+        assert_array_equal(line.get_xdata(), rows[keep])
+        assert_array_equal(line.get_ydata(), h[name][keep])
+    assert "row" in ax.get_xlabel()
     legend = [t.get_text() for t in ax.get_legend().get_texts()]
     assert legend == [line.get_label() for line in lines.values()]
+
+
+def test_history_of_an_older_archive_shows_the_newton_norms(exact):
+    """A history without estimator columns (older versions of "exact") draws the two norms."""
+    h = {k: exact.history[k] for k in ("k", "n_active", "comp_norm", "res_norm", "seconds")}
+    ax = plot.plot_history(dataclasses.replace(exact, history=h))
+    lines = curves(ax)
+    assert list(lines) == ["comp_norm", "res_norm"]
+    # the converged step has comp_norm exactly 0: masked, not a crash
+    assert h["comp_norm"][-1] == 0.0
+    assert len(lines["comp_norm"].get_xdata()) == len(h["k"]) - 1
+    assert "Newton step" in ax.get_xlabel()
 
 
 def test_history_adaptive(adaptive):

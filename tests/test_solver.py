@@ -145,7 +145,7 @@ def test_step_limit_is_reported(caplog):
 
 def test_cycling_is_detected(monkeypatch):
     """Without the safeguard, iterates alternating between two active sets raise CyclingError."""
-    import fastmem.solver as solver
+    import fastmem.newton as newton
 
     scene = _scene(fm.Mesh.square(6), (1.0, 1.0))
     n = scene.mesh.n_vertices
@@ -162,7 +162,7 @@ def test_cycling_is_detected(monkeypatch):
             lam[ii[self.calls % 2]] = 1.0  # active set {v0}, {v1}, {v0}, ...
             return np.zeros(n), np.zeros(n), lam
 
-    monkeypatch.setattr(solver, "make_step", lambda scene, path: Flip())
+    monkeypatch.setattr(newton, "make_step", lambda scene, path: Flip())
     with pytest.raises(CyclingError, match="cycles") as info:
         fm.solve(scene, method="exact", safeguard=False)
     assert info.value.history is not None

@@ -1,0 +1,300 @@
+r"""Linear steps of Newton-min: one interface, three implementations.
+
+Given the active set of a Newton-min step and the current triple (the warm
+start), a linear step computes the next triple ``(u1, u2, lam)`` of MATH.md
+3.2 (general path) or 3.3 (decoupled path) and hands every iterate it wants
+judged to the Newton layer's ``check`` (:class:`fastmem.newton.Checks`),
+which evaluates the estimators, records the history row and answers whether
+the step may stop:
+
+============================  =========================================  ======
+class                         how the step is solved                     method
+============================  =========================================  ======
+:class:`DirectStep`           sparse direct factorisation                "exact"
+:class:`AMGStep`              AMG-preconditioned CG to round-off         "exact-amg"
+:class:`~fastmem.adaptive.    AMG-preconditioned CG stopped by the        "inexact"
+AdaptiveStep`                 estimators (MATH.md 6)
+============================  =========================================  ======
+
+Interface (duck-typed)::
+
+    step.exact                        # True: every step is solved to round-off
+    step.name                         # "general" or "decoupled" (the formulation)
+    report = step.solve(active, (u1, u2, lam), check)   # -> StepReport
+    triple = step.face_solve(active, (u1, u2))           # exact solve (safeguard)
+    step.at_roundoff()                # the last solve reached round-off
+    step.total_iterations             # CG iterations on this level so far (0: direct)
+    step.stats                        # AMG setups, checks, ... of this level
+
+The formulations themselves (matrices, right-hand sides, the triple of a
+solution) are :class:`fastmem.linear.GeneralStep` and
+:class:`fastmem.linear.DecoupledStep`; the CG drivers over them are
+:class:`GeneralCG` and :class:`DecoupledCG` here.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .amg import PCG, amg_preconditioner
+from .linear import DecoupledStep
+
+__all__ = [
+    "EXACT_AMG_RTOL",
+    "AMGStep",
+    "DecoupledCG",
+    "DirectStep",
+    "GeneralCG",
+    "StepReport",
+]
+
+#: Relative residual of the CG solves "to round-off" (``exact-amg`` and safeguard face solves).
+EXACT_AMG_RTOL = 1e-12
+
+
+@dataclass
+class StepReport:
+    """What a linear step tells the Newton loop: CG iterations of the step, iteration limit hit."""
+
+    iterations: int = 0
+    hit_max: bool = False
+
+
+def new_stats() -> dict:
+    """Per-level counters of the AMG steps (``parameters["solver"]["levels"]``)."""
+    return {"amg_setups": 0, "amg_setup_seconds": 0.0, "checks": 0, "skipped_checks": 0}
+
+
+class GeneralCG:
+    """CG on the reduced SPD system of one active set (general path, MATH.md 3.2)."""
+
+    def __init__(self, system, options, stats):
+        self.system = system
+        self.options = options
+        self.stats = stats
+        self.active = None
+
+    def start(self, active, u1, u2):
+        """Set up the CG of the step with active set ``active``, warm-started at ``(u1, u2)``."""
+        st = self.system
+        ii = st.interior
+        p = st.prolongation(active)
+        if self.active is None or not np.array_equal(active, self.active):
+            self.mat = (p.T @ st.k_ii @ p).tocsr()  # the system changes size: new hierarchy
+            self.pre = amg_preconditioner(self.mat, dict(self.options.amg_options))
+            self.stats["amg_setups"] += 1
+            self.stats["amg_setup_seconds"] += self.pre.setup_seconds
+        self.active = active.copy()
+        self.p = p
+        rhs = p.T @ np.concatenate([st.rhs1, st.rhs2])
+        x0 = np.concatenate([u1[ii], u2[ii][~active]])
+        self.cg = PCG(self.mat, rhs, x0, self.pre)
+
+    def iterate(self, budget, s_share):
+        """One CG iteration; returns 0 when CG cannot proceed (at round-off)."""
+        return 1 if self.cg.step() else 0
+
+    def solve_exact(self):
+        """Iterate to round-off; return the CG iterations done (all CGs)."""
+        return self.cg.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
+
+    @property
+    def iterations(self):
+        """CG iterations of the current step (the gap CG on the decoupled path)."""
+        return self.cg.iterations
+
+    def at_roundoff(self):
+        """Return True when the current solve is at round-off."""
+        return self.cg.at_roundoff(EXACT_AMG_RTOL)
+
+    def residual(self):
+        """Relative CG residual, the predictor of eta_alg between checks."""
+        return self.cg.relative_residual
+
+    def true_relative_residual(self):
+        """Return the true relative residual of the current solve (the largest over its CGs)."""
+        return self.cg.true_residual_norm() / self.cg.b_norm
+
+    def triple(self):
+        """Full triple of the current CG iterate."""
+        return self.system.triple(self.active, self.p @ self.cg.x)
+
+
+class DecoupledCG:
+    """CGs for the sum s (one for the level) and the gap w (one per Newton step), MATH.md 3.3.
+
+    The gap system is the interior Laplacian with the rows and columns of the
+    active set replaced by its diagonal (``w = 0`` there), of fixed size; its
+    AMG hierarchy is reused while the active set differs from the one it was
+    built for in at most ``amg_reuse`` of the interior vertices.
+    """
+
+    def __init__(self, system, options, stats):
+        self.system = system
+        self.options = options
+        self.stats = stats
+        a = system.a_ii
+        self.a_ii = a
+        self.diag = a.diagonal()
+        self.pre_all = amg_preconditioner(a, dict(options.amg_options))
+        stats["amg_setups"] += 1
+        stats["amg_setup_seconds"] += self.pre_all.setup_seconds
+        self.pre_w = self.pre_all
+        self.setup_active = np.zeros(system.interior.size, dtype=bool)
+        self.cg_s = None
+        self.s_done = False
+        self.active = None
+
+    def start(self, active, u1, u2):
+        """Set up the CG of the step with active set ``active``, warm-started at ``(u1, u2)``."""
+        st = self.system
+        ii = st.interior
+        if self.cg_s is None:
+            self.cg_s = PCG(self.a_ii, st.rhs_s, (st.mu1 * u1 + st.mu2 * u2)[ii], self.pre_all)
+        keep = sp.diags((~active).astype(np.float64))
+        mat = (keep @ self.a_ii @ keep + sp.diags(self.diag * active)).tocsr()
+        changed = int(np.count_nonzero(active != self.setup_active))
+        if changed > self.options.amg_reuse * active.size:
+            self.pre_w = amg_preconditioner(mat, dict(self.options.amg_options))
+            self.stats["amg_setups"] += 1
+            self.stats["amg_setup_seconds"] += self.pre_w.setup_seconds
+            self.setup_active = active.copy()
+        rhs = np.where(active, 0.0, st.rhs_w)
+        w0 = np.where(active, 0.0, (u1 - u2)[ii])
+        self.active = active.copy()
+        self.cg_w = PCG(mat, rhs, w0, self._masked)
+
+    def _masked(self, r):
+        # the hierarchy may belong to an older active set: keep w = 0 on the current one
+        z = self.pre_w(np.where(self.active, 0.0, r))
+        z[self.active] = r[self.active] / self.diag[self.active]
+        return z
+
+    def iterate(self, budget, s_share):
+        """One CG iteration on w, and one on s while s holds over half the budget.
+
+        Returns the number of CG iterations done: 0 when neither CG can proceed.
+        """
+        done = 1 if self.cg_w.step() else 0
+        if self.s_done or (done and s_share <= 0.5 * budget):
+            return done
+        if self.cg_s.relative_residual <= EXACT_AMG_RTOL:
+            if self.cg_s.at_roundoff(EXACT_AMG_RTOL):
+                self.s_done = True
+                return done
+            self.cg_s.restart()  # the recursive residual drifted: replace it
+        if self.cg_s.step():
+            return done + 1
+        self.s_done = True  # stuck: at round-off
+        return done
+
+    def solve_exact(self):
+        """Iterate to round-off; return the CG iterations done (all CGs)."""
+        n = 0
+        if not self.s_done:
+            n += self.cg_s.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
+            self.s_done = True
+        return n + self.cg_w.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
+
+    @property
+    def iterations(self):
+        """CG iterations of the current step (the gap CG on the decoupled path)."""
+        return self.cg_w.iterations
+
+    def at_roundoff(self):
+        """Return True when the current solve is at round-off."""
+        s_ok = self.s_done or self.cg_s.at_roundoff(EXACT_AMG_RTOL)
+        return s_ok and self.cg_w.at_roundoff(EXACT_AMG_RTOL)
+
+    def residual(self):
+        """Relative CG residual of the gap, the predictor of eta_alg between checks."""
+        return self.cg_w.relative_residual
+
+    def true_relative_residual(self):
+        """Return the true relative residual of the current solve (the largest over its CGs)."""
+        return max(cg.true_residual_norm() / cg.b_norm for cg in (self.cg_s, self.cg_w))
+
+    def triple(self):
+        """Full triple of the current CG iterate."""
+        st = self.system
+        return st.triple(self.active, st._full(self.cg_s.x, st.s_boundary), self.cg_w.x)
+
+    def s_share(self, mass, c_f):
+        """Return the part of eta_alg due to the residual of s: C_F ||R_s/B|| / sqrt(mu1 + mu2)."""
+        st = self.system
+        rho = np.zeros(st.n)
+        rho[st.interior] = self.cg_s.r / st.b_int
+        return c_f * math.sqrt(max(float(rho @ (mass @ rho)), 0.0) / (st.mu1 + st.mu2))
+
+
+class DirectStep:
+    """Every step solved by a sparse direct factorisation (method "exact")."""
+
+    exact = True
+    total_iterations = 0
+
+    def __init__(self, system, options=None):
+        self.system = system
+        self.name = system.name
+        self.stats = {}
+
+    def solve(self, active, triple, check) -> StepReport:
+        """Solve the step of ``active`` from ``triple`` and hand the result to ``check``."""
+        check(self.system.solve(active), 0, True)
+        return StepReport()
+
+    def face_solve(self, active, warm):
+        """Solve the step of ``active`` to round-off (safeguard face solve); return the triple."""
+        return self.system.solve(active)
+
+    def at_roundoff(self) -> bool:
+        """Return True when the last solve reached round-off."""
+        return True
+
+    def true_relative_residual(self) -> float:
+        """Return the true relative residual of the last solve."""
+        return 0.0
+
+    @property
+    def factorizations(self) -> int:
+        """Number of sparse factorisations so far."""
+        return self.system.factorizations
+
+
+class AMGStep:
+    """Every step solved by AMG-preconditioned CG to round-off (method "exact-amg")."""
+
+    exact = True
+
+    def __init__(self, system, options):
+        self.name = system.name
+        self.options = options
+        self.stats = new_stats()
+        self.decoupled = isinstance(system, DecoupledStep)
+        self.cg = (DecoupledCG if self.decoupled else GeneralCG)(system, options, self.stats)
+        self.total_iterations = 0
+
+    def face_solve(self, active, warm):
+        """Solve the step of ``active`` to round-off (safeguard face solve); return the triple."""
+        self.cg.start(active, warm[0], warm[1])
+        self.total_iterations += self.cg.solve_exact()
+        return self.cg.triple()
+
+    def solve(self, active, triple, check) -> StepReport:
+        """Solve the step of ``active`` from ``triple`` and hand the result to ``check``."""
+        triple = self.face_solve(active, triple[:2])
+        n = self.cg.iterations
+        check(triple, n, False)
+        return StepReport(iterations=n)
+
+    def at_roundoff(self) -> bool:
+        """Return True when the last solve reached round-off."""
+        return self.cg.at_roundoff()
+
+    def true_relative_residual(self) -> float:
+        """Return the true relative residual of the last solve."""
+        return self.cg.true_relative_residual()
