@@ -30,6 +30,7 @@ BENCHMARKS = (
     "scaling",
     "threads",
     "unstructured",
+    "direct_ordering",
 )
 
 
@@ -276,6 +277,29 @@ def _unstructured(d, v):
     )
 
 
+def _direct_ordering(d, v):
+    spread = [x for x in d.get("spread", []) if x["system"] == "reduced-active"]
+    nd = [x for x in spread if x["ordering"] == "nested-dissection"]
+    if nd:
+        big = max(nd, key=lambda x: x["n"])
+        v["direct_n"] = big["n"]
+        v["direct_nd_max_s"] = f"{big['max_seconds']:.2f}"
+        v["direct_nd_time_spread"] = f"{big['seconds_spread']:.2f}"
+        v["direct_nd_fill_spread"] = f"{big['fill_spread']:.2f}"
+        unknowns = [
+            r["unknowns"]
+            for r in d["rows"]
+            if r["n"] == big["n"] and r["system"] == "reduced-active"
+        ]
+        v["direct_unknowns"] = _count(max(unknowns))
+    mmd = [x for x in spread if x["ordering"] == "MMD_AT_PLUS_A"]
+    if mmd:
+        m = max(mmd, key=lambda x: x["n"])
+        v["direct_mmd_n"] = m["n"]
+        v["direct_mmd_max_s"] = f"{m['max_seconds']:.1f}"
+        v["direct_mmd_time_spread"] = _x(m["seconds_spread"])
+
+
 _EXTRACT = {
     "unstructured": _unstructured,
     "assembly": _assembly,
@@ -286,6 +310,7 @@ _EXTRACT = {
     "work_precision": _work_precision,
     "scaling": _scaling,
     "threads": _threads,
+    "direct_ordering": _direct_ordering,
 }
 
 
@@ -359,6 +384,10 @@ def summary_lines(quick=False, folder=None):
         f"{g('unstructured_disk_default_speedup')}x (gmsh disk) faster than the "
         f"unconstrained start; finest steps {g('unstructured_auto_steps')} vs "
         f"{g('unstructured_cold_steps')}",
+        f"direct_order. n={g('direct_n')} ({g('direct_unknowns')} unknowns): nested "
+        f"dissection {g('direct_nd_max_s')} s, spread over meshes {g('direct_nd_time_spread')}x "
+        f"time {g('direct_nd_fill_spread')}x fill; MMD as given at n={g('direct_mmd_n')}: "
+        f"{g('direct_mmd_max_s')} s, spread {g('direct_mmd_time_spread')}x",
     ]
     return lines
 

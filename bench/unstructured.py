@@ -19,6 +19,7 @@ once, before the timings (as in ``bench.contact_solve``).
 
 import numpy as np
 
+from bench import _gmsh
 from bench._common import finish, parse, parser, peak_rss_mb, poisson_unit, progress, timed_budget
 
 FULL_SIZES = [256, 512, 1024]
@@ -40,32 +41,7 @@ def jittered_square(n):
 
 def disk(n):
     """gmsh mesh of the unit disk with element size 2/n (None without the gmsh package)."""
-    try:
-        import gmsh
-    except ImportError:
-        return None
-    import os
-    import tempfile
-
-    import fastmem as fm
-
-    gmsh.initialize(["-noenv"], readConfigFiles=False, interruptible=False)
-    try:
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.model.add("disk")
-        gmsh.model.occ.addDisk(0.0, 0.0, 0.0, 1.0, 1.0)
-        gmsh.model.occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", 2.0 / n)
-        gmsh.option.setNumber("Mesh.MeshSizeMax", 2.0 / n)
-        gmsh.option.setNumber("Mesh.Algorithm", 6)
-        gmsh.option.setNumber("Mesh.RandomSeed", 1.0)
-        gmsh.model.mesh.generate(2)
-        with tempfile.TemporaryDirectory() as tmp:
-            path = os.path.join(tmp, "disk.msh")
-            gmsh.write(path)
-            return fm.Mesh.read(path)
-    finally:
-        gmsh.finalize()
+    return _gmsh.mesh("disk", lambda occ: occ.addDisk(0.0, 0.0, 0.0, 1.0, 1.0), 2.0 / n)
 
 
 def scenes(n):

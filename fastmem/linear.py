@@ -22,9 +22,12 @@ Poisson problem, the gap :math:`w = u_1 - u_2` an obstacle problem whose
 Newton-min step is :math:`A_{\mathcal I\mathcal I} w_{\mathcal I} = \dots`, :math:`w = 0` on
 :math:`\mathcal A`, and :math:`\lambda_a = ((A w)_a - F^w_a) / (\kappa B_a)`.
 
-Exact solves use SuperLU (scipy); the factorisation of the interior
-Laplacian is computed once and reused for ``s`` and for every step whose
-active set is empty.
+Exact solves use SuperLU (scipy) in a nested-dissection order computed from
+the vertex of every unknown (:func:`fastmem.direct.factorize`), so that their
+cost does not depend on how the mesh numbers its vertices (refined, gmsh and
+adaptively refined meshes factor as fast as structured ones); the
+factorisation of the interior Laplacian is computed once and reused for ``s``
+and for every step whose active set is empty.
 """
 
 from __future__ import annotations
@@ -33,16 +36,28 @@ import logging
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+from .direct import factorize
 
 __all__ = ["DecoupledStep", "GeneralStep", "make_step", "residuals"]
 
 logger = logging.getLogger(__name__)
 
 
-def _factor(mat):
-    """Sparse LU factorisation suited to SPD matrices (symmetric ordering)."""
-    return spla.splu(sp.csc_matrix(mat), permc_spec="MMD_AT_PLUS_A")
+class _NoUnknowns:
+    """Factors of a 0 x 0 system (a mesh without interior vertices)."""
+
+    def solve(self, rhs):
+        return np.zeros(0)
+
+
+def _factor(mat, coordinates):
+    """Sparse LU factors of an SPD matrix, ordered from the unknowns' vertices."""
+    if mat.shape[0] == 0:
+        return _NoUnknowns()
+    lu = factorize(mat, coordinates)
+    logger.debug("factorised %r", lu)
+    return lu
 
 
 def residuals(scene, u1, u2, lam):
@@ -74,6 +89,7 @@ class _Base:
         self.b_int = mesh.lumped_mass[self.interior]
         self.g_full = scene.boundary_values
         self.factorizations = 0
+        self.xy = mesh.vertices[self.interior]
 
     def _full(self, interior_values, boundary_values=0.0):
         out = np.empty(self.n)
@@ -123,7 +139,7 @@ class GeneralStep(_Base):
         if not active.any() and self._lu_empty is not None:
             lu = self._lu_empty
         else:
-            lu = _factor(p.T @ self.k_ii @ p)
+            lu = _factor(p.T @ self.k_ii @ p, np.vstack([self.xy, self.xy[~active]]))
             self.factorizations += 1
             if not active.any():
                 self._lu_empty = lu
@@ -173,7 +189,7 @@ class DecoupledStep(_Base):
     def _lu_all(self):
         """SuperLU factors of the interior Laplacian, computed on first use."""
         if self._lu is None:
-            self._lu = _factor(self.a_ii)
+            self._lu = _factor(self.a_ii, self.xy)
             self.factorizations += 1
         return self._lu
 
@@ -191,7 +207,7 @@ class DecoupledStep(_Base):
         if active.any():
             sub = self.a_ii[inactive][:, inactive]
             if sub.shape[0]:
-                w_i[inactive] = _factor(sub).solve(self.rhs_w[inactive])
+                w_i[inactive] = _factor(sub, self.xy[inactive]).solve(self.rhs_w[inactive])
                 self.factorizations += 1
         else:
             w_i[:] = self._lu_all.solve(self.rhs_w)

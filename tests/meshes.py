@@ -39,3 +39,24 @@ def circle_mesh(refinements):
     with warnings.catch_warnings():  # scikit-fem's circle has clockwise triangles
         warnings.simplefilter("ignore", fm.errors.MeshWarning)
         return fm.Mesh(m.p.T, m.t.T)
+
+
+def gmsh_square(size, tmp_path):
+    """gmsh mesh of (-1, 1)^2 with element size ``size``, read back through Mesh.read."""
+    import pytest
+
+    gmsh = pytest.importorskip("gmsh")
+    path = tmp_path / "square.msh"
+    gmsh.initialize(["-noenv"], readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("square")
+        gmsh.model.occ.addRectangle(-1.0, -1.0, 0.0, 2.0, 2.0)
+        gmsh.model.occ.synchronize()
+        gmsh.option.setNumber("Mesh.MeshSizeMin", size)
+        gmsh.option.setNumber("Mesh.MeshSizeMax", size)
+        gmsh.model.mesh.generate(2)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    return fm.Mesh.read(path)

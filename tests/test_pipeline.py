@@ -18,16 +18,16 @@ SCENE = fm.Scene(fm.Mesh.square(64), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
 @pytest.fixture(scope="module")
 def results():
     return {
-        (m, p): fm.solve(SCENE, method=m, path=p)
-        for m in METHODS
-        for p in ("general", "decoupled")
+        (m, p): fm.solve(SCENE, method=m, path=p) for m in METHODS for p in ("general", "decoupled")
     }
 
 
 def test_options_are_frozen_and_validated_once():
     opts = SolveOptions.from_keywords(method="exact", gamma_alg=0.2, max_inner=7)
-    assert opts.newton.method == "exact" and opts.newton.exact
-    assert opts.inner.gamma_alg == 0.2 and opts.inner.max_inner == 7
+    assert opts.newton.method == "exact"
+    assert opts.newton.exact
+    assert opts.inner.gamma_alg == 0.2
+    assert opts.inner.max_inner == 7
     with pytest.raises(dataclasses.FrozenInstanceError):
         opts.newton.method = "inexact"
     with pytest.raises(TypeError):  # the AMG options are a read-only mapping
