@@ -10,6 +10,7 @@ One :class:`~fastmem.result.Result` is stored in one self-describing HDF5 file
     /solution    u1, u2, lambda, r1, r2, active (N,)
     /estimators  only with an estimate: one (M,) dataset per map; attrs = totals
     /history     one 1-D dataset per column; attr ``columns`` lists them in order
+    /adaptivity  only for a solve to a tolerance: one row per mesh, same layout as /history
     /timings     attrs: phase name -> seconds
 
 Arrays are stored with their own dtype and read back bit-exactly.  Arrays with
@@ -318,7 +319,7 @@ def _history_names(g: h5py.Group, p: Path) -> list:
         names = [k for k, v in g.items() if isinstance(v, h5py.Dataset)]
     for name in names:
         if not isinstance(g.get(name), h5py.Dataset):
-            raise ArchiveError(f"corrupt or truncated archive {p}: missing /history/{name}")
+            raise ArchiveError(f"corrupt or truncated archive {p}: missing {g.name}/{name}")
     return names
 
 
@@ -376,6 +377,10 @@ def load(path) -> Result:
         h = f["history"]
         history = {name: _read(f, f"history/{name}", p) for name in _history_names(h, p)}
         timings = {k: float(v) for k, v in f["timings"].attrs.items()}
+        adaptivity = None
+        if "adaptivity" in f:
+            a = f["adaptivity"]
+            adaptivity = {n: _read(f, f"adaptivity/{n}", p) for n in _history_names(a, p)}
         attrs = f.attrs
         parameters = json.loads(_as_str(attrs["scene"]))
         # archives hold validated counter-clockwise meshes: anything else is damage
@@ -391,6 +396,7 @@ def load(path) -> Result:
             method=_as_str(attrs["method"]),
             path=_as_str(attrs["path"]),
             estimate=estimate,
+            adaptivity=adaptivity,
         )
     logger.info("loaded result archive %s", p)
     return result
@@ -414,7 +420,9 @@ def info(path) -> dict:
         ``estimator_totals`` (dict of str to float, empty without an estimate),
         ``estimator_maps`` (list of str), ``timings`` (dict of str to float),
         ``history_columns`` (list of str) and ``n_history_rows`` (int, the
-        length of the longest history column, 0 without history).
+        length of the longest history column, 0 without history),
+        ``adaptivity`` (dict of str to list: the per-mesh table of a solve
+        to a tolerance, or None).
 
     Raises
     ------
@@ -444,7 +452,13 @@ def info(path) -> dict:
             "timings": {k: float(v) for k, v in f["timings"].attrs.items()},
             "history_columns": columns,
             "n_history_rows": max((len(h[c]) for c in columns), default=0),
+            "adaptivity": None,
         }
+        if "adaptivity" in f:
+            a = f["adaptivity"]
+            summary["adaptivity"] = {
+                n: _read(f, f"adaptivity/{n}", p).tolist() for n in _history_names(a, p)
+            }
     return summary
 
 

@@ -136,14 +136,14 @@ def _write_estimate(f: h5py.File, estimate) -> None:
         _write_array(g, _check_name("estimator map", key), value)
 
 
-def _write_history(f: h5py.File, history: dict) -> None:
-    g = f.create_group("history", track_order=True)
+def _write_history(f: h5py.File, history: dict, group: str = "history") -> None:
+    g = f.create_group(group, track_order=True)
     names = [_check_name("history column", k) for k in history]
     g.attrs.create("columns", names, dtype=h5py.string_dtype())
     for name in names:
         column = np.asarray(history[name])
         if column.ndim != 1:
-            raise ArchiveError(f"history column {name!r} must be 1-D, got shape {column.shape}")
+            raise ArchiveError(f"{group} column {name!r} must be 1-D, got shape {column.shape}")
         _write_array(g, name, column)
 
 
@@ -252,6 +252,8 @@ def write_archive(result, path) -> None:
                 if result.estimate is not None:
                     _write_estimate(f, result.estimate)
                 _write_history(f, result.history)
+                if result.adaptivity is not None:
+                    _write_history(f, result.adaptivity, "adaptivity")
                 _write_timings(f, result.timings)
             _write_integrity_header(tmp)
     except ArchiveError:

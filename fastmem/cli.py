@@ -57,6 +57,13 @@ def _build_parser() -> argparse.ArgumentParser:
         "--mesh", type=Path, default=None, help="mesh file readable by meshio (e.g. gmsh .msh)"
     )
     r.add_argument(
+        "--domain",
+        choices=("square", "lshape"),
+        default="square",
+        help="domain of the structured mesh of --n: the square (-1, 1)^2 (default) or the "
+        "L-shape (-1, 1)^2 minus [0, 1) x (-1, 0]",
+    )
+    r.add_argument(
         "--refine", type=int, default=0, help="uniform refinements applied to the mesh (default 0)"
     )
     r.add_argument("--mu1", type=float, default=1.0, help="tension of membrane 1 (default 1)")
@@ -107,6 +114,28 @@ def _build_parser() -> argparse.ArgumentParser:
         "becomes exact-amg, since inexact stops by the estimators)",
     )
     r.add_argument("-q", "--quiet", action="store_true", help="no per-step monitor")
+    a = r.add_argument_group(
+        "solving to a tolerance (adaptive mesh refinement, starting from the mesh above)"
+    )
+    a.add_argument(
+        "--tol", type=float, default=None, help="refine until the guaranteed bound eta <= TOL"
+    )
+    a.add_argument(
+        "--rtol",
+        type=float,
+        default=None,
+        help="refine until eta <= RTOL * |||u_h||| (energy norm of the discrete solution)",
+    )
+    a.add_argument(
+        "--theta", type=float, default=None, help="Dörfler marking fraction (default 0.5)"
+    )
+    a.add_argument(
+        "--max-vertices", type=int, default=None, help="vertex limit (default 5M; exact: 1M)"
+    )
+    a.add_argument("--max-levels", type=int, default=None, help="mesh limit (default 30)")
+    a.add_argument(
+        "--time-budget", type=float, default=None, help="seconds (stop before exceeding it)"
+    )
 
     i = sub.add_parser("info", help="summarise a result archive")
     i.set_defaults(func=_cmd_info)
@@ -159,6 +188,38 @@ class _Monitor:
         )
 
 
+class _LevelMonitor:
+    """One line per mesh of a solve to a tolerance (a row of ``result.adaptivity``)."""
+
+    header = (
+        f"{'mesh':>4} {'vertices':>9} {'triangles':>10} {'eta':>10} {'target':>10} "
+        f"{'eta_disc':>10} {'eta_lin':>10} {'eta_alg':>10} {'marked':>7} {'newton':>6} "
+        f"{'cg':>5} {'sec':>7}"
+    )
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        if enabled:
+            _out(self.header)
+            _out("-" * len(self.header))
+
+    def __call__(self, row: dict) -> None:
+        if not self.enabled:
+            return
+        _out(
+            f"{row['level']:>4d} {row['n_vertices']:>9d} {row['n_triangles']:>10d} "
+            f"{row['eta']:>10.3e} {row['target']:>10.3e} {row['eta_disc']:>10.3e} "
+            f"{row['eta_lin']:>10.3e} {row['eta_alg']:>10.3e} "
+            f"{100 * row['marked_fraction']:>6.1f}% {row['newton']:>6d} {row['inner']:>5d} "
+            f"{row['solve_seconds'] + row['refine_seconds']:>7.2f}"
+        )
+
+
+def _adapt_keywords(args) -> dict:
+    keys = ("tol", "rtol", "theta", "max_vertices", "max_levels", "time_budget")
+    return {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
+
+
 def _cmd_run(args) -> int:
     from .config import set_threads
     from .mesh import Mesh
@@ -173,8 +234,14 @@ def _cmd_run(args) -> int:
         source = str(args.mesh)
     else:
         n = DEFAULT_N if args.n is None else args.n
-        mesh = Mesh.square(n)
-        source = f"square n={n}"
+        mesh = Mesh.lshape(n) if args.domain == "lshape" else Mesh.square(n)
+        source = f"{args.domain} n={n}"
+    adapt = _adapt_keywords(args)
+    adaptive = args.tol is not None or args.rtol is not None
+    if adaptive and args.no_estimate:
+        from .errors import ParameterError
+
+        raise ParameterError("--tol/--rtol need the error bound: drop --no-estimate")
     method = args.method
     if method is None:
         method = "exact-amg" if args.no_estimate else "inexact"
@@ -198,12 +265,19 @@ def _cmd_run(args) -> int:
         f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), g = {args.g:g}, "
         f"method = {method}"
     )
+    if adaptive:
+        goal = " or ".join(
+            f"{name} {getattr(args, name):g}" for name in ("tol", "rtol") if getattr(args, name)
+        )
+        _out(f"  solving to {goal} by adaptive refinement")
+        adapt["level_monitor"] = _LevelMonitor(not args.quiet)
     result = solve(
         scene,
         method=method,
         path=args.path,
         max_newton=args.max_newton,
-        monitor=_Monitor(not args.quiet),
+        monitor=None if adaptive else _Monitor(not args.quiet),
+        **adapt,
         estimate=not args.no_estimate,
         gamma_alg=args.gamma_alg,
         gamma_lin=args.gamma_lin,
@@ -211,9 +285,18 @@ def _cmd_run(args) -> int:
     )
     result.timings["mesh"] = t_mesh
     reason = result.parameters["solver"].get("stop_reason", "step limit reached")
+    if adaptive:
+        reason = result.parameters["adaptivity"]["stop_reason"]
     status = "converged" if result.converged else f"NOT CONVERGED ({reason or 'criteria not met'})"
     _out()
     _out(f"  status            {status}")
+    if adaptive:
+        table = result.adaptivity
+        _out(
+            f"  adaptive meshes   {len(table['level'])}: {table['n_vertices'][0]} -> "
+            f"{result.mesh.n_vertices} vertices, eta {table['eta'][0]:.3e} -> "
+            f"{table['eta'][-1]:.3e}"
+        )
     _out(f"  linear path       {result.path}")
     levels = result.parameters["solver"]["levels"]
     steps = ", ".join(str(lv["newton"]) for lv in levels)
@@ -270,6 +353,14 @@ def _cmd_info(args) -> int:
         f"  history           {summary['n_history_rows']} rows: "
         f"{', '.join(summary['history_columns'])}"
     )
+    table = summary.get("adaptivity")
+    if table:
+        adapt = params.get("adaptivity", {})
+        _out(
+            f"  adaptivity        {len(table['level'])} meshes, {table['n_vertices'][0]} -> "
+            f"{table['n_vertices'][-1]} vertices, eta {table['eta'][0]:.3e} -> "
+            f"{table['eta'][-1]:.3e} ({adapt.get('stop_reason', '')})"
+        )
     for k, v in summary["timings"].items():
         _out(f"  time {k:<12} {v:.3f} s")
     return 0

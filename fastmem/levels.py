@@ -67,8 +67,13 @@ def _chain(scene, options, init, timings):
     return chain + [scene]
 
 
-def solve_levels(scene, options, init, timings) -> Result:
-    """Nested iteration over the coarse chain, then Newton-min on ``scene``: the Result."""
+def solve_levels(scene, options, init, timings, prolonged=False) -> Result:
+    """Nested iteration over the coarse chain, then Newton-min on ``scene``: the Result.
+
+    ``prolonged``: ``init`` was prolonged from a coarser mesh (the adaptive loop of
+    :mod:`fastmem.afem`), so its first active set is chosen as on the levels of nested
+    iteration (:func:`fastmem.nested.warm_active_set`).
+    """
     levels = _chain(scene, options, init, timings)
     rows = new_history()
     infos, iterates = [], []
@@ -99,7 +104,7 @@ def solve_levels(scene, options, init, timings) -> Result:
             certify=certify,
             disc_hint=hint,
             hint_slack=slack,
-            prolonged=lev > 0,
+            prolonged=lev > 0 or prolonged,
         )
         triple = (out.last.u1, out.last.u2, out.last.lam)
         iterates.extend(out.iterates)

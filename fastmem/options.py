@@ -11,7 +11,9 @@ only its group:
   inner stopping parameter, iteration limit, check frequency, hierarchy reuse
   and the pyamg options;
 - :class:`RecordOptions`: what is recorded and shown while solving (monitor
-  callback, flux at every history row, iterates kept).
+  callback, flux at every history row, iterates kept);
+- :class:`AdaptOptions`: solving to a tolerance by adaptive refinement
+  (:mod:`fastmem.afem`; only when ``tol`` or ``rtol`` is given).
 
 A value that does not fit raises :class:`~fastmem.errors.ParameterError` (or
 :class:`~fastmem.errors.InputTypeError` for a wrong type) naming the option.
@@ -28,12 +30,30 @@ import numpy as np
 from .amg import check_amg_options
 from .errors import InputTypeError, ParameterError
 
-__all__ = ["METHODS", "PATHS", "InnerOptions", "NewtonOptions", "RecordOptions", "SolveOptions"]
+__all__ = [
+    "EXACT_MAX_VERTICES",
+    "MAX_VERTICES",
+    "METHODS",
+    "PATHS",
+    "AdaptOptions",
+    "InnerOptions",
+    "NewtonOptions",
+    "RecordOptions",
+    "SolveOptions",
+]
 
 #: Solution methods of :func:`fastmem.solve` (how each linear step is solved).
 METHODS = ("inexact", "exact-amg", "exact")
 #: Linear-step formulations (MATH.md 3.2 and 3.3).
 PATHS = ("auto", "general", "decoupled")
+
+#: Default vertex limit of the adaptive loop (about 10M triangles; ~12 GB at the
+#: measured 2.3 KB per vertex of a solve with the bound).
+MAX_VERTICES = 5_000_000
+#: Vertex limit of the adaptive loop with method="exact" (default and largest accepted):
+#: a sparse direct factorisation of the reduced system of a 1M-vertex mesh takes about
+#: 40 s and 3 GB per Newton step (bench/direct_ordering.py, extrapolated).
+EXACT_MAX_VERTICES = 1_000_000
 
 
 def _flag(name, value) -> bool:
@@ -144,12 +164,84 @@ class RecordOptions(_Frozen):
 
 
 @dataclass(frozen=True)
+class AdaptOptions(_Frozen):
+    """Solving to a tolerance: the refinement loop of :mod:`fastmem.afem`.
+
+    ``None`` for ``max_vertices`` means :data:`MAX_VERTICES`
+    (:data:`EXACT_MAX_VERTICES` with method "exact"), resolved by
+    :meth:`SolveOptions.from_keywords`.
+    """
+
+    tol: float | None = None
+    rtol: float | None = None
+    theta: float = 0.5
+    max_vertices: int | None = None
+    max_levels: int = 30
+    time_budget: float | None = None
+    level_monitor: object = None
+
+    def _check(self, name, value):
+        if name in ("tol", "rtol", "time_budget") and value is not None:
+            return _number(name, value)
+        if name == "theta":
+            value = _number(name, value)
+            if value > 1.0:
+                raise ParameterError(f"theta must be in (0, 1], got {value!r}")
+            return value
+        if name in ("max_vertices", "max_levels") and value is not None:
+            return _number(name, value, integer=True)
+        if name == "level_monitor" and value is not None and not callable(value):
+            raise InputTypeError(f"level_monitor must be a callable taking one row, got {value!r}")
+        return value
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.tol is None and self.rtol is None:
+            raise ParameterError("adaptive refinement needs tol or rtol (or both)")
+
+
+#: Keywords of :class:`AdaptOptions` other than the tolerances, with the values that mean
+#: "not given" (they need ``tol`` or ``rtol``).
+_ADAPT_ONLY = {
+    "theta": None,
+    "max_vertices": None,
+    "max_levels": None,
+    "time_budget": None,
+    "level_monitor": None,
+}
+
+
+def _adapt_options(keywords, method) -> AdaptOptions | None:
+    names = [f.name for f in fields(AdaptOptions)]
+    given = {n: keywords.pop(n) for n in names if n in keywords}
+    if given.get("tol") is None and given.get("rtol") is None:
+        extra = sorted(n for n, v in given.items() if n in _ADAPT_ONLY and v is not None)
+        if extra:
+            raise ParameterError(
+                f"{', '.join(extra)} only apply to adaptive refinement: give tol or rtol too"
+            )
+        return None
+    given = {n: v for n, v in given.items() if v is not None}
+    limit = EXACT_MAX_VERTICES if method == "exact" else None
+    opts = AdaptOptions(**given)
+    if opts.max_vertices is None:
+        opts = AdaptOptions(**{**given, "max_vertices": limit or MAX_VERTICES})
+    elif limit is not None and opts.max_vertices > limit:
+        raise ParameterError(
+            f"max_vertices={opts.max_vertices} is too large for method='exact' (sparse direct "
+            f"solves; at most {limit}): use method='inexact' or a smaller max_vertices"
+        )
+    return opts
+
+
+@dataclass(frozen=True)
 class SolveOptions:
-    """All options of one solve, one group per layer."""
+    """All options of one solve, one group per layer (``adapt`` is None without a tolerance)."""
 
     newton: NewtonOptions = field(default_factory=NewtonOptions)
     inner: InnerOptions = field(default_factory=InnerOptions)
     record: RecordOptions = field(default_factory=RecordOptions)
+    adapt: AdaptOptions | None = None
 
     @classmethod
     def from_keywords(cls, **keywords) -> SolveOptions:
@@ -158,6 +250,7 @@ class SolveOptions:
         for group_cls in (NewtonOptions, InnerOptions, RecordOptions):
             names = [f.name for f in fields(group_cls)]
             groups[group_cls] = group_cls(**{n: keywords.pop(n) for n in names if n in keywords})
+        adapt = _adapt_options(keywords, groups[NewtonOptions].method)
         if keywords:
             raise ParameterError(f"unknown solve options {sorted(keywords)}")
-        return cls(groups[NewtonOptions], groups[InnerOptions], groups[RecordOptions])
+        return cls(groups[NewtonOptions], groups[InnerOptions], groups[RecordOptions], adapt)

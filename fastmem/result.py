@@ -178,7 +178,12 @@ class Result:
         ``method="inexact"``).
     iterates : list of tuple or None
         With ``solve(..., keep_iterates=True)``: the triple ``(u1, u2, lam)``
-        of every history row (not archived).
+        of every history row (not archived; with a tolerance, the final mesh's).
+    adaptivity : dict of str to ndarray, or None
+        With ``solve(..., tol=...)`` or ``rtol=``: one row per mesh of the
+        adaptive loop, columns :data:`fastmem.afem.ADAPTIVITY_COLUMNS`
+        (vertices, triangles, eta and its components, energy norm, target,
+        marked fraction, Newton steps, CG iterations, seconds); archived.
 
     Raises
     ------
@@ -204,6 +209,7 @@ class Result:
     path: str = ""
     estimate: Estimate | None = None
     iterates: list | None = None
+    adaptivity: dict | None = None
 
     def __post_init__(self):
         check_result(self)

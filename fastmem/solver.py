@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 
+from .afem import solve_to_tolerance
 from .config import blas_limits
 from .errors import InputTypeError, ParameterError
 from .history import HISTORY_COLUMNS
@@ -53,6 +54,13 @@ def solve(
     full_history: bool = False,
     keep_iterates: bool = False,
     safeguard: bool = True,
+    tol: float | None = None,
+    rtol: float | None = None,
+    theta: float | None = None,
+    max_vertices: int | None = None,
+    max_levels: int | None = None,
+    time_budget: float | None = None,
+    level_monitor=None,
 ) -> Result:
     """Solve the discrete two-membrane contact problem with Newton-min.
 
@@ -126,6 +134,29 @@ def solve(
         ``result.parameters["solver"]["safeguard"]`` and in the history
         column ``safeguard``.  ``False``: cycling raises
         :class:`~fastmem.errors.CyclingError`.
+    tol, rtol : float, optional
+        Solve to a guaranteed tolerance by adaptive mesh refinement
+        (:mod:`fastmem.afem`): refine the scene's mesh until the guaranteed
+        bound of the returned triple satisfies ``eta <= tol`` or ``eta <= rtol
+        * |||u_h|||`` (either suffices), ``|||u_h|||^2 = sum_i mu_i ||grad
+        u_ih||^2`` the energy norm of the discrete solution.  The result is on
+        the final mesh, with ``result.adaptivity`` (one row per mesh) and
+        ``result.parameters["adaptivity"]`` (settings, ``stop_reason``).
+        Without either, the scene's mesh is solved as it is.
+    theta : float
+        Dörfler marking fraction in (0, 1] (default 0.5): each refinement
+        marks the fewest triangles holding ``theta`` of ``sum_K eta_K^2``.
+    max_vertices : int
+        Stop (``converged=False``) instead of solving a mesh with more
+        vertices (default :data:`fastmem.options.MAX_VERTICES`, 5M;
+        with ``method="exact"`` at most and by default 1M).
+    max_levels : int
+        Stop after solving this many meshes (default 30).
+    time_budget : float
+        Seconds: stop when the next level would end after this time
+        (predicted from the last level's time per vertex).
+    level_monitor : callable, optional
+        Called with each row of ``result.adaptivity`` (a dict) when its mesh is done.
 
     Returns
     -------
@@ -165,11 +196,24 @@ def solve(
         monitor=monitor,
         full_history=full_history,
         keep_iterates=keep_iterates,
+        tol=tol,
+        rtol=rtol,
+        theta=theta,
+        max_vertices=max_vertices,
+        max_levels=max_levels,
+        time_budget=time_budget,
+        level_monitor=level_monitor,
     )
     if path == "decoupled" and not scene.constant_mu:
         raise ParameterError(
             "path='decoupled' needs constant mu1 and mu2; this scene has per-triangle "
             "values (use path='general' or 'auto')"
+        )
+    adapt = options.adapt
+    if adapt is not None and scene.mesh.n_vertices > adapt.max_vertices:
+        raise ParameterError(
+            f"max_vertices={adapt.max_vertices} is smaller than the initial mesh "
+            f"({scene.mesh.n_vertices} vertices)"
         )
     init = None if initial is None else check_triple(scene.mesh, initial, prefix="initial ")
     timings = {}
@@ -180,6 +224,9 @@ def solve(
             expect_estimates(scene)
         _ = scene.loads, scene.weighted_stiffness(1), scene.weighted_stiffness(2)
         timings["assembly"] = time.perf_counter() - t0
-        result = solve_levels(scene, options, init, timings)
+        if adapt is None:
+            result = solve_levels(scene, options, init, timings)
+        else:
+            result = solve_to_tolerance(scene, options, init, timings)
     timings["total"] = time.perf_counter() - t_start
     return result

@@ -1,0 +1,345 @@
+r"""Solving to a guaranteed tolerance: the adaptive refinement loop (MATH.md section 9).
+
+``fm.solve(scene, tol=1e-3)`` (or ``rtol=``) runs, from the scene's mesh,
+
+    SOLVE -> ESTIMATE -> MARK -> REFINE
+
+until the guaranteed bound of the returned triple is below the target:
+
+1. **SOLVE** the problem on the current mesh with the pipeline of
+   :func:`fastmem.levels.solve_levels` (the first mesh with nested iteration
+   over its coarse chain; every later mesh warm-started from the triple of the
+   previous one, prolonged exactly: newest-vertex bisection keeps P1
+   functions), with the stopping rule of the method (for ``"inexact"``:
+   ``eta_alg, eta_lin <= gamma * eta_disc``).
+2. **ESTIMATE**: the bound ``eta`` of the level's final triple, evaluated fresh
+   (a flux reconstruction per mesh, none on the intermediate meshes of nested
+   iteration), and the per-triangle indicators
+
+   .. math:: \eta_K^2 = \sum_i (\eta_{osc,K,i} + \eta_{F,K,i})^2 + \eta_{nc,K}^2 + \eta_{C,K}
+
+   (:func:`indicators`).  They are the local contributions of ``eta_disc``
+   (flux, oscillation, complementarity) and ``eta_lin`` (non-conformity);
+   the global terms (``eta_alg`` and the ``lam^-`` part of ``eta_lin``,
+   Friedrichs constant times a norm over the whole domain) have no local
+   form and are made small by the solver, not by refinement.
+3. **STOP** when ``eta <= target`` with ``target = max(tol, rtol * |||u_h|||)``
+   (either tolerance may be omitted), where
+
+   .. math:: |||u_h|||^2 = \sum_{i=1,2} \mu_i \|\nabla u_{ih}\|^2
+
+   is the energy norm of the discrete solution (the norm the bound measures
+   the error in); or when the next mesh would exceed ``max_vertices``, the
+   loop has solved ``max_levels`` meshes, or the next level would end after
+   ``time_budget`` seconds (predicted from the last level's time, scaled by
+   the number of vertices).  Then ``converged=False`` and the reason is in
+   ``result.parameters["adaptivity"]["stop_reason"]``.
+4. **MARK** the fewest triangles holding a fraction ``theta`` of
+   ``sum eta_K^2`` (Dörfler, :func:`fastmem.refine.dorfler_mark`, O(M)).
+5. **REFINE** by newest-vertex bisection with conforming closure
+   (:func:`fastmem.refine.refine_marked`); the scene moves to the new mesh by
+   :func:`refine_scene` (per-triangle mu inherited, per-vertex data
+   interpolated, callables evaluated on the new mesh).
+
+The result is the last level's, on its mesh, with ``result.adaptivity``: one
+row per mesh (:data:`ADAPTIVITY_COLUMNS`), archived under ``/adaptivity``.
+Its history holds the rows of every mesh in order; the ``level`` column
+counts the meshes (nested-iteration levels of the first mesh, then one per
+refinement), and ``parameters["solver"]["levels"]`` has one entry per mesh.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from .levels import solve_levels
+from .refine import dorfler_mark, refine_marked
+from .scene import Scene
+
+__all__ = [
+    "ADAPTIVITY_COLUMNS",
+    "energy_norm",
+    "indicators",
+    "prolong_to_refined",
+    "refine_scene",
+    "solve_to_tolerance",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Columns of ``result.adaptivity``: one row per mesh of the adaptive loop.
+ADAPTIVITY_COLUMNS = (
+    "level",  # 0 = the scene's mesh
+    "n_vertices",
+    "n_triangles",
+    "eta",  # guaranteed bound of the level's final triple (fresh)
+    "eta_disc",
+    "eta_lin",
+    "eta_alg",
+    "energy_norm",  # |||u_h||| of the level's triple
+    "target",  # max(tol, rtol * energy_norm)
+    "marked_fraction",  # marked / triangles (0 on the last level)
+    "newton",  # Newton-min steps on this mesh (nested levels of the first mesh included)
+    "inner",  # CG iterations on this mesh (0 for "exact")
+    "solve_seconds",  # SOLVE + ESTIMATE
+    "refine_seconds",  # MARK + REFINE + moving the scene and the triple
+)
+_INT_COLUMNS = frozenset({"level", "n_vertices", "n_triangles", "newton", "inner"})
+
+
+def indicators(estimate) -> np.ndarray:
+    r"""Per-triangle refinement indicators :math:`\eta_K^2` of an estimate (module docstring)."""
+    m = estimate.maps
+    return (
+        (m["eta_osc1"] + m["eta_F1"]) ** 2
+        + (m["eta_osc2"] + m["eta_F2"]) ** 2
+        + m["eta_nc"] ** 2
+        + m["eta_C"]
+    )
+
+
+def energy_norm(scene: Scene, u1, u2) -> float:
+    r""":math:`(\sum_i \mu_i \|\nabla u_{ih}\|^2)^{1/2}`, the energy norm of a discrete pair."""
+    e = u1 @ (scene.weighted_stiffness(1) @ u1) + u2 @ (scene.weighted_stiffness(2) @ u2)
+    return float(np.sqrt(max(e, 0.0)))
+
+
+def refine_scene(scene: Scene, mesh, refinement) -> Scene:
+    """Move the problem to a refined mesh (``refine_marked``'s ``(mesh, refinement)``).
+
+    Constant data and callables are kept (callables are evaluated on the new
+    mesh); per-triangle ``mu`` is inherited by the children; per-vertex loads
+    are interpolated (exact for P1 data); per-vertex ``g`` is interpolated
+    along the bisected boundary edges.
+    """
+
+    def nodal(value):
+        return value if callable(value) or isinstance(value, float) else refinement.prolong(value)
+
+    def per_triangle(value):
+        return value if isinstance(value, float) else refinement.inherit(value)
+
+    g = scene.g
+    if not (callable(g) or isinstance(g, float)):
+        g = refinement.prolong(scene.boundary_values)
+    return Scene(
+        mesh,
+        mu=(per_triangle(scene.mu1), per_triangle(scene.mu2)),
+        f=(nodal(scene.f1), nodal(scene.f2)),
+        g=g,
+        active_c=scene.active_c,
+        load_degree=scene.load_degree,
+    )
+
+
+def prolong_to_refined(scene: Scene, refinement, triple):
+    """Prolong a triple to the refined ``scene`` exactly; boundary values set from its data."""
+    u1, u2, lam = (refinement.prolong(x) for x in triple)
+    bnd = scene.mesh.boundary_vertices
+    u1[bnd] = scene.boundary_values[bnd]
+    u2[bnd] = 0.0
+    lam[bnd] = 0.0
+    return u1, u2, lam
+
+
+def _level_options(options):
+    """Every mesh of the loop needs the bound: ``estimate=True`` for the exact methods."""
+    from dataclasses import replace
+
+    if options.newton.needs_estimate:
+        return options
+    return replace(options, newton=replace(options.newton, estimate=True))
+
+
+class _Merged:
+    """History rows and level entries of all meshes, renumbered into one sequence."""
+
+    def __init__(self):
+        self.history = None
+        self.levels = []
+        self.factorizations = 0
+        self.safeguard = None
+
+    def add(self, result):
+        h = result.history
+        solver = result.parameters["solver"]
+        offset = len(self.levels)
+        if self.history is None:
+            self.history = {k: [np.asarray(v)] for k, v in h.items()}
+        else:
+            inner0 = self.history["inner_total"][-1]
+            start = int(inner0[-1]) if inner0.size else 0
+            for k, v in h.items():
+                v = np.asarray(v)
+                if k == "level":
+                    v = v + offset
+                elif k == "inner_total":
+                    v = v + start
+                self.history[k].append(v)
+        for info in solver["levels"]:
+            self.levels.append({**info, "level": offset + info["level"]})
+        self.factorizations += solver.get("factorizations", 0)
+        sg = solver["safeguard"]
+        if self.safeguard is None:
+            self.safeguard = {k: (list(v) if isinstance(v, list) else v) for k, v in sg.items()}
+        else:
+            for k in ("uses", "steps", "seconds", "reached_kkt"):
+                self.safeguard[k] += sg[k]
+            self.safeguard["triggers"] += [f"mesh {offset}+: {t}" for t in sg["triggers"]]
+
+    def history_arrays(self):
+        return {k: np.concatenate(v) for k, v in self.history.items()}
+
+
+def _row(level, scene, result, target, energy, seconds):
+    totals = result.estimate.totals
+    newton = sum(info["newton"] for info in result.parameters["solver"]["levels"])
+    inner = result.history["inner_total"]
+    return {
+        "level": level,
+        "n_vertices": scene.mesh.n_vertices,
+        "n_triangles": scene.mesh.n_triangles,
+        "eta": float(totals["eta"]),
+        "eta_disc": float(totals["eta_disc"]),
+        "eta_lin": float(totals["eta_lin"]),
+        "eta_alg": float(totals["eta_alg"]),
+        "energy_norm": energy,
+        "target": target,
+        "marked_fraction": 0.0,
+        "newton": int(newton),
+        "inner": int(inner[-1]) if inner.size else 0,
+        "solve_seconds": seconds,
+        "refine_seconds": 0.0,
+    }
+
+
+def _table(rows) -> dict:
+    return {
+        c: np.asarray([r[c] for r in rows], dtype=np.int64 if c in _INT_COLUMNS else np.float64)
+        for c in ADAPTIVITY_COLUMNS
+    }
+
+
+def _next_mesh(scene, result, adapt):
+    """MARK and REFINE: (marked fraction, new scene, refinement)."""
+    marked = dorfler_mark(indicators(result.estimate), adapt.theta)
+    mesh, refinement = refine_marked(scene.mesh, marked)
+    return float(marked.mean()), mesh, refinement
+
+
+def _stop_before_refining(level, adapt, t_start):
+    if level + 1 >= adapt.max_levels:
+        return f"max_levels={adapt.max_levels} meshes solved"
+    if adapt.time_budget is not None and time.perf_counter() - t_start >= adapt.time_budget:
+        return f"time_budget={adapt.time_budget:g} s used"
+    return None
+
+
+def _stop_after_refining(mesh, row, adapt, t_start):
+    if mesh.n_vertices > adapt.max_vertices:
+        return (
+            f"the next mesh would have {mesh.n_vertices} vertices > "
+            f"max_vertices={adapt.max_vertices}"
+        )
+    if adapt.time_budget is not None:
+        growth = mesh.n_vertices / row["n_vertices"]
+        end = time.perf_counter() - t_start + row["solve_seconds"] * growth
+        if end > adapt.time_budget:
+            return (
+                f"the next level would end after about {end:.1f} s > "
+                f"time_budget={adapt.time_budget:g} s"
+            )
+    return None
+
+
+def solve_to_tolerance(scene, options, init, timings):
+    """Run the adaptive loop (module docstring); return the Result on the final mesh."""
+    adapt = options.adapt
+    level_options = _level_options(options)
+    t_start = time.perf_counter()
+    merged, rows = _Merged(), []
+    triple, prolonged = init, False
+    refine_total = 0.0
+    level = 0
+    while True:
+        t0 = time.perf_counter()
+        level_timings = {}
+        result = solve_levels(scene, level_options, triple, level_timings, prolonged=prolonged)
+        energy = energy_norm(scene, result.u1, result.u2)
+        target = max(adapt.tol or 0.0, (adapt.rtol or 0.0) * energy)
+        row = _row(level, scene, result, target, energy, time.perf_counter() - t0)
+        merged.add(result)
+        rows.append(row)
+        ok = result.converged
+        reached = row["eta"] <= target
+        reason = None
+        if reached:
+            reason = "tolerance reached"
+        elif not ok:
+            reason = f"the solver did not converge on level {level} ({result.n_newton} steps)"
+        else:
+            reason = _stop_before_refining(level, adapt, t_start)
+        if reason is None:
+            t1 = time.perf_counter()
+            fraction, mesh, refinement = _next_mesh(scene, result, adapt)
+            reason = _stop_after_refining(mesh, row, adapt, t_start)
+            if reason is None:
+                new_scene = refine_scene(scene, mesh, refinement)
+                last = (result.u1, result.u2, result.lam)
+                triple = prolong_to_refined(new_scene, refinement, last)
+                scene, prolonged = new_scene, True
+                row["marked_fraction"] = fraction
+            row["refine_seconds"] = time.perf_counter() - t1
+            refine_total += row["refine_seconds"]
+        _report(row, adapt)
+        if reason is not None:
+            break
+        level += 1
+    timings["refine"] = refine_total
+    timings["solve"] = time.perf_counter() - t_start - refine_total
+    result.timings = timings
+    return _finish(result, merged, rows, adapt, reached and ok, reason)
+
+
+def _report(row, adapt):
+    logger.info(
+        "adaptive level %d: %d vertices, eta %.4e (target %.4e), marked %.1f%%, %.2f s",
+        row["level"],
+        row["n_vertices"],
+        row["eta"],
+        row["target"],
+        100 * row["marked_fraction"],
+        row["solve_seconds"] + row["refine_seconds"],
+    )
+    if adapt.level_monitor is not None:
+        adapt.level_monitor(dict(row))
+
+
+def _finish(result, merged, rows, adapt, converged, reason):
+    solver = result.parameters["solver"]
+    solver["levels"] = merged.levels
+    solver["nested_levels"] = len(merged.levels)
+    solver["safeguard"] = merged.safeguard
+    if "factorizations" in solver:
+        solver["factorizations"] = merged.factorizations
+    result.parameters["adaptivity"] = {
+        "tol": adapt.tol,
+        "rtol": adapt.rtol,
+        "theta": adapt.theta,
+        "max_vertices": adapt.max_vertices,
+        "max_levels": adapt.max_levels,
+        "time_budget": adapt.time_budget,
+        "meshes": len(rows),
+        "converged": bool(converged),
+        "stop_reason": reason,
+        "indicators": "eta_K^2 = sum_i (eta_osc,K,i + eta_F,K,i)^2 + eta_nc,K^2 + eta_C,K",
+    }
+    result.history = merged.history_arrays()
+    result.adaptivity = _table(rows)
+    result.converged = bool(converged)
+    if not converged:
+        logger.warning("adaptive refinement stopped before the tolerance: %s", reason)
+    return result
