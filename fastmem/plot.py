@@ -13,7 +13,12 @@ command-line glue work without it.
   norms against the Newton step.
 * :func:`plot_solution` draws ``u1``, ``u2`` and the gap ``u1 - u2`` with the
   contact set.
-* :func:`plot_result` combines both in one figure and optionally saves it.
+* :func:`plot_adaptivity` draws a solve to a tolerance (``result.adaptivity``):
+  ``eta`` and its components against the number of vertices of each mesh
+  (log-log, with the optimal slope ``N^(-1/2)`` and, when given, the curve of
+  uniform refinement), and the final adapted mesh coloured by the refinement
+  indicators ``eta_K``.
+* :func:`plot_result` combines them in one figure and optionally saves it.
 * :func:`add_parser` and :func:`run_plot` implement the ``fastmem plot``
   subcommand.
 
@@ -35,6 +40,7 @@ import numpy as np
 __all__ = [
     "MISSING_MATPLOTLIB",
     "add_parser",
+    "plot_adaptivity",
     "plot_history",
     "plot_result",
     "plot_solution",
@@ -306,6 +312,114 @@ def plot_solution(result, axes=None):
     return axes
 
 
+def _uniform_points(uniform):
+    """(vertices, eta) arrays of the uniform-refinement curve, sorted, or None."""
+    if uniform is None:
+        return None
+    n = np.asarray(uniform["n_vertices"], dtype=np.float64).ravel()
+    eta = np.asarray(uniform["eta"], dtype=np.float64).ravel()
+    if n.shape != eta.shape:
+        from .errors import ParameterError
+
+        raise ParameterError(
+            f"uniform needs n_vertices and eta of equal length, got {n.size} and {eta.size}"
+        )
+    order = np.argsort(n)
+    return n[order], eta[order]
+
+
+def plot_adaptivity(result, axes=None, *, uniform=None):
+    """Draw a solve to a tolerance: eta against N, and the adapted mesh with its indicators.
+
+    Parameters
+    ----------
+    result : fastmem.Result
+        A result of ``fm.solve(scene, tol=...)`` (or ``rtol=``), with
+        ``result.adaptivity``.
+    axes : sequence of 2 matplotlib.axes.Axes, optional
+        Axes for the convergence curves and for the mesh; a new standalone
+        figure by default.
+    uniform : dict, optional
+        ``{"n_vertices": [...], "eta": [...]}`` of uniformly refined meshes
+        (for example from ``fm.solve`` on ``Mesh.lshape(n)`` for several n),
+        drawn as a dashed curve.
+
+    Returns
+    -------
+    list of matplotlib.axes.Axes
+        The two axes.  The curves have ``gid`` ``eta``, ``eta_disc``,
+        ``eta_lin``, ``eta_alg``, ``target``, ``uniform`` and ``slope``; the
+        mesh collection ``mesh``.
+
+    Raises
+    ------
+    fastmem.errors.ParameterError
+        If the result has no adaptivity table, or ``axes`` is not two axes.
+    """
+    _require_matplotlib()
+    from matplotlib.colors import LogNorm
+    from matplotlib.tri import Triangulation
+
+    from .errors import ParameterError
+
+    table = result.adaptivity
+    if table is None:
+        raise ParameterError("plot_adaptivity needs a result of fm.solve(scene, tol=...)")
+    if axes is None:
+        fig = _new_figure((12.0, 5.0))
+        axes = [fig.add_subplot(1, 2, i + 1) for i in range(2)]
+    else:
+        axes = list(np.ravel(np.asarray(axes, dtype=object)))
+        if len(axes) != 2:
+            raise ParameterError(f"plot_adaptivity needs 2 axes, got {len(axes)}")
+    ax, mesh_ax = axes
+    n = np.asarray(table["n_vertices"], dtype=np.float64)
+    _plot_curves(ax, table, n, _ESTIMATOR_CURVES)
+    (line,) = ax.plot(n, table["target"], "k:", label="target")
+    line.set_gid("target")
+    points = _uniform_points(uniform)
+    if points is not None:
+        (line,) = ax.plot(*points, "k--", marker="x", label=r"$\eta$, uniform refinement")
+        line.set_gid("uniform")
+    if n.size:
+        ref = table["eta"][0] * (n / n[0]) ** -0.5
+        (line,) = ax.plot(n, ref, color="0.6", linewidth=0.8, label=r"$N^{-1/2}$")
+        line.set_gid("slope")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("vertices $N$")
+    ax.set_ylabel("estimator")
+    ax.set_title(f"adaptive refinement: {n.size} meshes")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    v = np.asarray(result.mesh.vertices, dtype=np.float64)
+    tri = Triangulation(v[:, 0], v[:, 1], np.asarray(result.mesh.triangles))
+    if result.estimate is not None and "eta_F1" in result.estimate.maps:
+        from .afem import indicators
+
+        eta_k = np.sqrt(indicators(result.estimate))
+        top = float(eta_k.max()) if eta_k.size else 0.0
+        lo = top * 1e-6 if top > 0 else 1.0  # six decades: the contact set has ~0
+        coll = mesh_ax.tripcolor(
+            tri,
+            facecolors=np.maximum(eta_k, lo),
+            cmap="viridis",
+            norm=LogNorm(vmin=lo, vmax=max(lo, top)),
+            edgecolors="face",
+        )
+        mesh_ax.figure.colorbar(coll, ax=mesh_ax, shrink=0.9, label=r"$\eta_K$")
+        title = "final mesh, indicators $\\eta_K$"
+    else:
+        coll = mesh_ax.triplot(tri, color="k", linewidth=0.2)[0]
+        title = "final mesh"
+    coll.set_gid("mesh")
+    if result.mesh.n_triangles <= 20_000:  # edges stay readable
+        mesh_ax.triplot(tri, color="w", linewidth=0.15, alpha=0.6)
+    mesh_ax.set_aspect("equal")
+    mesh_ax.set_title(f"{title} ({result.mesh.n_vertices} vertices)")
+    return axes
+
+
 def _suptitle(result) -> str:
     mesh = result.mesh
     status = "converged" if result.converged else "not converged"
@@ -333,12 +447,14 @@ def _image_format(path: Path, fig) -> str:
     return fmt
 
 
-def plot_result(result, path=None, *, show: bool = False):
+def plot_result(result, path=None, *, show: bool = False, uniform=None):
     """Draw the history and the solution of a result in one figure; optionally save it.
 
     The figure has four panels: the convergence history (:func:`plot_history`)
     and ``u1``, ``u2`` and the gap with the contact set
-    (:func:`plot_solution`), plus one colorbar per solution panel.
+    (:func:`plot_solution`), plus one colorbar per solution panel; a solve to
+    a tolerance adds the two panels of :func:`plot_adaptivity` (``uniform``
+    is passed on to it).
 
     Parameters
     ----------
@@ -370,7 +486,7 @@ def plot_result(result, path=None, *, show: bool = False):
         If ``path`` cannot be written (e.g. its folder does not exist).
     """
     _require_matplotlib()
-    fig = _draw_result(result, path, pyplot=show)
+    fig = _draw_result(result, path, pyplot=show, uniform=uniform)
     if show:
         import matplotlib.pyplot as plt
 
@@ -378,14 +494,19 @@ def plot_result(result, path=None, *, show: bool = False):
     return fig
 
 
-def _draw_result(result, path, *, pyplot: bool):
-    """Draw the four-panel figure of :func:`plot_result` and save it; do not show it."""
-    fig = _new_figure((12.0, 9.5), pyplot=pyplot)
+def _draw_result(result, path, *, pyplot: bool, uniform=None):
+    """Draw the figure of :func:`plot_result` and save it; do not show it."""
+    rows = 2 if result.adaptivity is None else 3
+    fig = _new_figure((12.0, 4.75 * rows), pyplot=pyplot)
     try:
         target = None if path is None else Path(os.fspath(path))
         fmt = None if target is None else _image_format(target, fig)
-        plot_history(result, ax=fig.add_subplot(2, 2, 1))
-        plot_solution(result, axes=[fig.add_subplot(2, 2, i) for i in (2, 3, 4)])
+        plot_history(result, ax=fig.add_subplot(rows, 2, 1))
+        plot_solution(result, axes=[fig.add_subplot(rows, 2, i) for i in (2, 3, 4)])
+        if rows == 3:
+            plot_adaptivity(
+                result, axes=[fig.add_subplot(3, 2, i) for i in (5, 6)], uniform=uniform
+            )
         fig.suptitle(_suptitle(result))
         if target is not None:
             fig.savefig(target, format=fmt, dpi=150)
@@ -433,6 +554,15 @@ def add_parser(subparsers):
         help="image to write; its suffix selects the format (default: FILE with suffix .png)",
     )
     p.add_argument("--show", action="store_true", help="also open the figure in a window")
+    p.add_argument(
+        "--uniform",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="ARCHIVE",
+        help="archives of the same problem on uniform meshes: their eta against N is drawn "
+        "beside the adaptive curve (a solve to a tolerance only)",
+    )
     p.set_defaults(func=run_plot)
     return p
 
@@ -477,12 +607,24 @@ def run_plot(args) -> int:
         _require_matplotlib()
     except ImportError as exc:
         return _error(str(exc))
-    from .archive import load
+    from .archive import info, load
 
     result = load(args.file)
+    uniform = None
+    if getattr(args, "uniform", None):
+        points = [info(f) for f in args.uniform]
+        missing = [
+            str(f) for f, s in zip(args.uniform, points, strict=True) if not s["has_estimate"]
+        ]
+        if missing:
+            return _error(f"--uniform archives without an error bound: {', '.join(missing)}")
+        uniform = {
+            "n_vertices": [s["n_vertices"] for s in points],
+            "eta": [s["estimator_totals"]["eta"] for s in points],
+        }
     output = args.output if args.output is not None else Path(args.file).with_suffix(".png")
     try:
-        _draw_result(result, output, pyplot=args.show)
+        _draw_result(result, output, pyplot=args.show, uniform=uniform)
     except FastmemError:
         raise
     except OSError as exc:

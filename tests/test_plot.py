@@ -415,3 +415,57 @@ def test_cli_bad_output(archive, tmp_path, capsys):
     assert captured.out == ""
     assert captured.err.startswith(f"fastmem: error: cannot write {out}: ")
     assert captured.err.count("\n") == 1
+
+
+# ----------------------------------------------------------------------------- adaptivity
+
+
+@pytest.fixture(scope="module")
+def adapted():
+    scene = fm.Scene(fm.Mesh.lshape(8), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    return fm.solve(scene, tol=0.05)
+
+
+def test_adaptivity_panels(adapted):
+    table = adapted.adaptivity
+    uniform = {"n_vertices": [833, 65, 225], "eta": [0.03, 0.2, 0.1]}
+    ax, mesh_ax = plot.plot_adaptivity(adapted, uniform=uniform)
+    lines = curves(ax)
+    assert {"eta", "eta_disc", "target", "uniform", "slope"} <= set(lines)
+    assert_array_equal(lines["eta"].get_xdata(), table["n_vertices"])
+    assert_array_equal(lines["eta"].get_ydata(), table["eta"])
+    assert_array_equal(lines["uniform"].get_xdata(), [65, 225, 833])  # sorted by N
+    assert_array_equal(lines["uniform"].get_ydata(), [0.2, 0.1, 0.03])
+    assert ax.get_xscale() == ax.get_yscale() == "log"
+    assert str(adapted.mesh.n_vertices) in mesh_ax.get_title()
+    (coll,) = [c for c in mesh_ax.collections if c.get_gid() == "mesh"]
+    assert len(coll.get_array()) == adapted.mesh.n_triangles  # one colour per triangle
+
+
+def test_adaptivity_errors(adapted, exact):
+    with pytest.raises(ParameterError, match="tol"):
+        plot.plot_adaptivity(exact)
+    with pytest.raises(ParameterError, match="equal length"):
+        plot.plot_adaptivity(adapted, uniform={"n_vertices": [1, 2], "eta": [1.0]})
+
+
+def test_plot_result_of_a_solve_to_tolerance(adapted, tmp_path):
+    out = tmp_path / "a.png"
+    fig = plot.plot_result(adapted, out)
+    assert png_size(out) == (1800, 2137)  # three rows
+    titles = [ax.get_title() for ax in fig.axes]
+    assert any("adaptive refinement" in t for t in titles)
+
+
+def test_cli_uniform_archives(adapted, exact, tmp_path, capsys):
+    a = tmp_path / "adapt.h5"
+    adapted.save(a)
+    u = tmp_path / "u.h5"
+    fm.solve(fm.Scene(fm.Mesh.lshape(16), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)).save(u)
+    out = tmp_path / "a.png"
+    assert plot.run_plot(parse(["plot", str(a), "--uniform", str(u), "-o", str(out)])) == 0
+    assert out.exists()
+    plain = tmp_path / "plain.h5"
+    exact.save(plain)  # no estimate: no eta to draw
+    assert plot.run_plot(parse(["plot", str(a), "--uniform", str(plain), "-o", str(out)])) == 2
+    assert "without an error bound" in capsys.readouterr().err
