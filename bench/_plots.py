@@ -278,6 +278,105 @@ def plot_threads(payload, path):
     return _save(fig, path)
 
 
+def _rate_label(text, fit):
+    return text if not fit else f"{text} (N^-{fit['rate']:.2f})"
+
+
+def _slope_guide(ax, xs, ys, power, label, style):
+    """Line ~ N^-power through the first point (xs, ys sorted by xs)."""
+    if len(xs) < 2:
+        return
+    ax.loglog([xs[0], xs[-1]], [ys[0], ys[0] * (xs[-1] / xs[0]) ** -power], style, lw=1, label=label)
+
+
+def plot_adaptivity(payload, path):
+    rows = payload["rows"]
+    cases = payload.get("cases", {})
+    names = [c for c in ("lshape", "manufactured") if any(r["case"] == c for r in rows)]
+    if not names:
+        return None
+    fig, axes = _new(ncols=len(names) + 1, size=(6.0, 5.0))
+    titles = {
+        "lshape": "L-shape, default data (error unknown)",
+        "manufactured": "square, manufactured solution (MATH.md section 7)",
+    }
+    colors = {"uniform": "tab:orange", "adaptive": "tab:blue"}
+    for ax, name in zip(axes, names, strict=False):
+        rates = cases.get(name, {}).get("rates", {})
+        for kind in ("uniform", "adaptive"):
+            sub = sorted(
+                (r for r in rows if r["case"] == name and r["kind"] == kind),
+                key=lambda r: r["vertices"],
+            )
+            if not sub:
+                continue
+            nv = [r["vertices"] for r in sub]
+            ax.loglog(
+                nv,
+                [r["eta"] for r in sub],
+                "o-" if kind == "uniform" else "s-",
+                ms=4,
+                color=colors[kind],
+                label=_rate_label(f"{kind}: $\\eta$", rates.get(f"{kind}_eta")),
+            )
+            if all("energy_error" in r for r in sub):
+                ax.loglog(
+                    nv,
+                    [r["energy_error"] for r in sub],
+                    "o--" if kind == "uniform" else "s--",
+                    ms=3,
+                    mfc="none",
+                    color=colors[kind],
+                    label=_rate_label(f"{kind}: true error", rates.get(f"{kind}_error")),
+                )
+        allv = sorted(r["vertices"] for r in rows if r["case"] == name)
+        top = max(r["eta"] for r in rows if r["case"] == name)
+        _slope_guide(ax, [allv[0], allv[-1]], [top], 0.5, "N^-1/2", "k:")
+        if name == "lshape":
+            _slope_guide(ax, [allv[0], allv[-1]], [top], 1.0 / 3.0, "N^-1/3", "k-.")
+        ax.set_xlabel("vertices N")
+        ax.set_ylabel("guaranteed bound $\\eta$ (solid), true energy error (dashed)")
+        ax.set_title(titles.get(name, name), fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    ax = axes[len(names)]
+    markers = {"lshape": "o", "manufactured": "s"}
+    for name in names:
+        recs = cases.get(name, {}).get("tolerances", [])
+        tol = [t["tol"] for t in recs]
+        ax.loglog(
+            tol,
+            [t["seconds"] for t in recs],
+            markers[name] + "-",
+            color=colors["adaptive"] if name == "lshape" else "tab:cyan",
+            label=f"{name}: adaptive loop",
+        )
+        pts = [(t["tol"], t["uniform_seconds"]) for t in recs if "uniform_seconds" in t]
+        if pts:
+            ax.loglog(
+                *zip(*pts, strict=True),
+                markers[name] + "--",
+                color=colors["uniform"] if name == "lshape" else "tab:red",
+                label=f"{name}: uniform (smallest n with $\\eta$ <= tol)",
+            )
+        ax.loglog(
+            tol,
+            [t["final_solve_seconds"] for t in recs],
+            markers[name] + ":",
+            color="tab:gray",
+            mfc="none",
+            label=f"{name}: final adapted mesh solved alone",
+        )
+    ax.invert_xaxis()
+    ax.set_xlabel("tolerance on $\\eta$")
+    ax.set_ylabel("seconds to reach $\\eta$ <= tol (median)")
+    ax.set_title("time to a guaranteed tolerance", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    _title(fig, payload, "Adaptive (Dörfler + newest-vertex bisection) vs uniform refinement")
+    return _save(fig, path)
+
+
 _PLOTTERS = {
     "assembly": plot_assembly,
     "poisson_unit": plot_poisson_unit,
@@ -287,6 +386,7 @@ _PLOTTERS = {
     "work_precision": plot_work_precision,
     "scaling": plot_scaling,
     "threads": plot_threads,
+    "adaptivity": plot_adaptivity,
 }
 
 

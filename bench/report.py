@@ -31,6 +31,7 @@ BENCHMARKS = (
     "threads",
     "unstructured",
     "direct_ordering",
+    "adaptivity",
 )
 
 
@@ -300,6 +301,79 @@ def _direct_ordering(d, v):
         v["direct_mmd_time_spread"] = _x(m["seconds_spread"])
 
 
+def _adaptivity(d, v):
+    cases = d.get("cases", {})
+    short = {"lshape": "lshape", "manufactured": "man"}
+    for name, c in cases.items():
+        k = short.get(name, name)
+        for key, fit in c.get("rates", {}).items():
+            if isinstance(fit, dict):
+                v[f"adapt_{k}_{key}_rate"] = f"{fit['rate']:.2f}"
+                v[f"adapt_{k}_{key}_fit"] = (
+                    f"N = {_count(fit['vertices'][0])}–{_count(fit['vertices'][1])}, "
+                    f"{fit['points']} meshes"
+                )
+        tight = c["tolerances"][-1]
+        v[f"adapt_{k}_tol"] = f"{tight['tol']:.2e}"
+        v[f"adapt_{k}_vertices"] = _count(tight["vertices"])
+        v[f"adapt_{k}_s"] = f"{tight['seconds']:.2f}"
+        v[f"adapt_{k}_loop_over_final"] = f"{tight['loop_over_final_solve']:.2f}"
+        worst = max(t["loop_over_final_solve"] for t in c["tolerances"])
+        v[f"adapt_{k}_loop_over_final_worst"] = f"{worst:.2f}"
+        if "uniform_n" in tight:
+            v[f"adapt_{k}_uniform_n"] = tight["uniform_n"]
+            v[f"adapt_{k}_uniform_vertices"] = _count(tight["uniform_vertices"])
+            v[f"adapt_{k}_uniform_s"] = f"{tight['uniform_seconds']:.2f}"
+            v[f"adapt_{k}_speedup"] = _x(tight["speedup_vs_uniform"])
+            v[f"adapt_{k}_vertex_ratio"] = _x(tight["vertex_ratio_uniform_over_adaptive"])
+        rc = c.get("refinement_cost", {})
+        if rc.get("levels"):
+            v[f"adapt_{k}_refine_pu_max"] = f"{rc['max']:.2f}"
+            v[f"adapt_{k}_refine_pu_median"] = f"{rc['median']:.2f}"
+            v[f"adapt_{k}_refine_levels"] = rc["levels"]
+        eff = c.get("effectivity")
+        if eff:
+            v[f"adapt_{k}_eff_final"] = f"{eff['final']:.2f}"
+            v[f"adapt_{k}_eff_range"] = f"{eff['min']:.2f}–{eff['max']:.2f}"
+    v["adapt_table"] = _adaptivity_table(cases)
+    big = d.get("big")
+    if big:
+        v["adapt_big_triangles"] = _count(big["triangles"])
+        v["adapt_big_vertices"] = _count(big["vertices"])
+        v["adapt_big_peak_gb"] = f"{big['peak_rss_mb'] / 1024:.1f}"
+        v["adapt_big_s"] = f"{big['seconds']:.0f}"
+        v["adapt_big_meshes"] = big["meshes"]
+
+
+def _adaptivity_table(cases):
+    """Markdown table: per case and tolerance, the adaptive loop against uniform refinement."""
+    lines = [
+        "| case | tol | adaptive: N | s | loop / final solve | uniform: n (N) | s | speed-up"
+        " | N ratio |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, c in cases.items():
+        for t in c["tolerances"]:
+            uni = ["–"] * 4
+            if "uniform_n" in t:
+                uni = [
+                    f"{t['uniform_n']} ({_count(t['uniform_vertices'])})",
+                    f"{t['uniform_seconds']:.2f}",
+                    _x(t["speedup_vs_uniform"]),
+                    _x(t["vertex_ratio_uniform_over_adaptive"]),
+                ]
+            cells = [
+                name,
+                f"{t['tol']:.2e}",
+                _count(t["vertices"]),
+                f"{t['seconds']:.2f}",
+                f"{t['loop_over_final_solve']:.2f}",
+                *uni,
+            ]
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 _EXTRACT = {
     "unstructured": _unstructured,
     "assembly": _assembly,
@@ -311,6 +385,7 @@ _EXTRACT = {
     "scaling": _scaling,
     "threads": _threads,
     "direct_ordering": _direct_ordering,
+    "adaptivity": _adaptivity,
 }
 
 
@@ -388,6 +463,13 @@ def summary_lines(quick=False, folder=None):
         f"dissection {g('direct_nd_max_s')} s, spread over meshes {g('direct_nd_time_spread')}x "
         f"time {g('direct_nd_fill_spread')}x fill; MMD as given at n={g('direct_mmd_n')}: "
         f"{g('direct_mmd_max_s')} s, spread {g('direct_mmd_time_spread')}x",
+        f"adaptivity    L-shape: eta ~ N^-{g('adapt_lshape_adaptive_eta_rate')} adaptive, "
+        f"N^-{g('adapt_lshape_uniform_eta_rate')} uniform; eta <= {g('adapt_lshape_tol')}: "
+        f"{g('adapt_lshape_speedup')}x faster, {g('adapt_lshape_vertex_ratio')}x fewer vertices "
+        f"than uniform n={g('adapt_lshape_uniform_n')}; loop/final solve "
+        f"{g('adapt_lshape_loop_over_final')}; refine {g('adapt_lshape_refine_pu_max')} PU/level "
+        f"(max); manufactured effectivity {g('adapt_man_eff_final')} (final level); big: "
+        f"{g('adapt_big_triangles')} triangles, {g('adapt_big_peak_gb')} GB",
     ]
     return lines
 

@@ -132,7 +132,7 @@ def _build_parser() -> argparse.ArgumentParser:
     a.add_argument(
         "--max-vertices", type=int, default=None, help="vertex limit (default 5M; exact: 1M)"
     )
-    a.add_argument("--max-levels", type=int, default=None, help="mesh limit (default 30)")
+    a.add_argument("--max-levels", type=int, default=None, help="mesh limit (default 100)")
     a.add_argument(
         "--time-budget", type=float, default=None, help="seconds (stop before exceeding it)"
     )

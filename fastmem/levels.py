@@ -67,12 +67,13 @@ def _chain(scene, options, init, timings):
     return chain + [scene]
 
 
-def solve_levels(scene, options, init, timings, prolonged=False) -> Result:
+def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None) -> Result:
     """Nested iteration over the coarse chain, then Newton-min on ``scene``: the Result.
 
     ``prolonged``: ``init`` was prolonged from a coarser mesh (the adaptive loop of
     :mod:`fastmem.afem`), so its first active set is chosen as on the levels of nested
-    iteration (:func:`fastmem.nested.warm_active_set`).
+    iteration (:func:`fastmem.nested.warm_active_set`); ``disc_hint`` is then the
+    eta_disc predicted for ``scene`` (used like the prediction from a coarser level).
     """
     levels = _chain(scene, options, init, timings)
     rows = new_history()
@@ -81,7 +82,7 @@ def solve_levels(scene, options, init, timings, prolonged=False) -> Result:
     t_solve = time.perf_counter()
     for lev, sc in enumerate(levels):
         t0 = time.perf_counter()
-        hint, slack = None, 1.0
+        hint, slack = (disc_hint if lev == 0 else None), 1.0
         if lev > 0:
             triple = prolong_triple(sc, levels[lev - 1], triple)
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()

@@ -176,7 +176,7 @@ class AdaptOptions(_Frozen):
     rtol: float | None = None
     theta: float = 0.5
     max_vertices: int | None = None
-    max_levels: int = 30
+    max_levels: int = 100
     time_budget: float | None = None
     level_monitor: object = None
 

@@ -151,7 +151,8 @@ def solve(
         vertices (default :data:`fastmem.options.MAX_VERTICES`, 5M;
         with ``method="exact"`` at most and by default 1M).
     max_levels : int
-        Stop after solving this many meshes (default 30).
+        Stop after solving this many meshes (default 100; with ``theta=0.5``
+        each mesh has about 1.3-1.4 times the vertices of the previous one).
     time_budget : float
         Seconds: stop when the next level would end after this time
         (predicted from the last level's time per vertex).
