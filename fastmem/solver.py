@@ -2,6 +2,9 @@ r"""The solver's entry point: :func:`solve` validates, groups the options, runs 
 
 The pipeline, one loop per layer, each layer knowing only the one below:
 
+0. :mod:`fastmem.afem` (only with ``tol`` or ``rtol``): the adaptive
+   refinement loop, SOLVE -> ESTIMATE -> MARK -> REFINE, calling the levels
+   layer once per mesh;
 1. :mod:`fastmem.levels`: nested iteration over the chain of coarser meshes
    (every method), then the :class:`~fastmem.result.Result`;
 2. :mod:`fastmem.newton`: Newton-min on one mesh, one loop for every method
