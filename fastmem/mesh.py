@@ -68,6 +68,7 @@ from .errors import (
     ReadOnlyError,
 )
 from .kernels import assembly as _ka
+from .kernels import topology as _kt
 
 __all__ = ["Mesh"]
 
@@ -355,41 +356,18 @@ class Mesh:
     def _topology(self) -> dict:
         if "edges" in self._cache:
             return self._cache
-        t = self.triangles
-        n, m = self.n_vertices, self.n_triangles
-        half = t[:, _EDGE_VERTS]  # (M, 3, 2): local edge i from vertex i+1 to i+2
-        a = half[..., 0].ravel()
-        b = half[..., 1].ravel()
-        lo = np.minimum(a, b)
-        hi = np.maximum(a, b)
-        key = lo * np.int64(n) + hi
-        perm = np.argsort(key, kind="stable")
-        skey = key[perm]
-        first = np.empty(skey.size, dtype=bool)
-        first[0] = True
-        np.not_equal(skey[1:], skey[:-1], out=first[1:])
-        starts = np.flatnonzero(first)
-        n_edges = starts.size
-        counts = np.diff(np.append(starts, skey.size))
+        n = self.n_vertices
+        edges, tri_edges, et, counts, fwd_count = _kt.edge_topology(self.triangles, n)
         if (counts > 2).any():
             e = int(np.flatnonzero(counts > 2)[0])
-            k = skey[starts[e]]
             raise MeshError(
                 f"non-manifold edges: {int((counts > 2).sum())} edges are shared by more than "
-                f"two triangles (first: edge ({k // n}, {k % n}) in {counts[e]} triangles)"
+                f"two triangles (first: edge ({edges[e, 0]}, {edges[e, 1]}) in {counts[e]} "
+                "triangles)"
             )
-        edge_id_sorted = np.cumsum(first) - 1
-        tri_edges = np.empty(3 * m, dtype=np.int64)
-        tri_edges[perm] = edge_id_sorted
-        edges = np.stack([skey[starts] // n, skey[starts] % n], axis=1)
-        # Triangles on each side; the fold check: the two half-edges of an
-        # interior edge must run in opposite directions.
-        et = np.full((n_edges, 2), -1, dtype=np.int64)
-        et[:, 0] = perm[starts] // 3
+        # the fold check: the two half-edges of an interior edge must run in opposite
+        # directions
         two = counts == 2
-        et[two, 1] = perm[starts[two] + 1] // 3
-        forward = (a < b)[perm]
-        fwd_count = np.add.reduceat(forward.astype(np.int64), starts)
         folded = two & (fwd_count != 1)
         if folded.any():
             e = int(np.flatnonzero(folded)[0])
@@ -408,7 +386,7 @@ class Mesh:
             )
         self._cache.update(
             edges=_readonly(edges),
-            triangle_edges=_readonly(tri_edges.reshape(m, 3)),
+            triangle_edges=_readonly(tri_edges),
             edge_triangles=_readonly(et),
             boundary_edges=_readonly(boundary_edges),
             boundary_vertex_mask=_readonly(bcount > 0),
