@@ -286,7 +286,9 @@ def _slope_guide(ax, xs, ys, power, label, style):
     """Line ~ N^-power through the first point (xs, ys sorted by xs)."""
     if len(xs) < 2:
         return
-    ax.loglog([xs[0], xs[-1]], [ys[0], ys[0] * (xs[-1] / xs[0]) ** -power], style, lw=1, label=label)
+    ax.loglog(
+        [xs[0], xs[-1]], [ys[0], ys[0] * (xs[-1] / xs[0]) ** -power], style, lw=1, label=label
+    )
 
 
 def plot_adaptivity(payload, path):
@@ -329,6 +331,16 @@ def plot_adaptivity(payload, path):
                     color=colors[kind],
                     label=_rate_label(f"{kind}: true error", rates.get(f"{kind}_error")),
                 )
+        big = payload.get("big") if name == "lshape" else None
+        if big and big.get("table"):
+            ax.loglog(
+                big["table"]["n_vertices"],
+                big["table"]["eta"],
+                "-",
+                lw=0.8,
+                color="tab:purple",
+                label=f"adaptive, big stage ({big['triangles'] / 1e6:.1f}M triangles)",
+            )
         allv = sorted(r["vertices"] for r in rows if r["case"] == name)
         top = max(r["eta"] for r in rows if r["case"] == name)
         _slope_guide(ax, [allv[0], allv[-1]], [top], 0.5, "N^-1/2", "k:")
