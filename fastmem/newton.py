@@ -43,6 +43,7 @@ from .adaptive import AdaptiveStep
 from .bound import evaluate
 from .errors import CyclingError, NumericalError
 from .estimators import combine, global_terms, local_terms
+from .kernels import rows as _kr
 from .linear import make_step, residuals
 from .nested import warm_active_set
 from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
@@ -213,14 +214,17 @@ class Checks:
     def _row(self, last, inner, disc, eta_lin, eta_alg, safeguard):
         u1, u2, lam = last.u1, last.u2, last.lam
         est = last.estimate
+        changed, comp_sq = _kr.row_measures(
+            u1, u2, lam, self.interior, self.active, self.scene.active_c
+        )
         row = {
             "level": self.level,
             "k": self.k,
             "inner": inner,
             "inner_total": self.level_start + self.step.total_iterations,
             "n_active": int(self.active.sum()),
-            "n_changed": int(np.count_nonzero(self.scene.active_rule(u1, u2, lam) != self.active)),
-            "comp_norm": float(np.linalg.norm(complementarity(u1, u2, lam, self.interior))),
+            "n_changed": int(changed),
+            "comp_norm": math.sqrt(comp_sq),
             "res_norm": float(np.sqrt(last.r1 @ last.r1 + last.r2 @ last.r2)),
             "eta_disc": math.nan if disc is None else disc,
             "eta_lin": eta_lin,
