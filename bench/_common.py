@@ -171,7 +171,20 @@ def timed_budget(fn, repeat=3, budget=60.0):
 
 
 def peak_rss_mb():
-    """Peak resident memory of this process so far (Linux: ru_maxrss is in KiB)."""
+    """Peak resident memory of this process so far, in MiB.
+
+    Linux: ``VmHWM`` of /proc/self/status, the high-water mark of this
+    process's own memory.  Not ``ru_maxrss``: Linux carries it over fork and
+    exec, so a worker started by a process of 17 GB reported 17 GB from its
+    first line (bench.adaptivity, 2026-11-23).  Elsewhere ``ru_maxrss``.
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 

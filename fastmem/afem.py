@@ -311,6 +311,9 @@ def solve_to_tolerance(scene, options, init, timings):
         _report(row, adapt)
         if reason is not None:
             break
+        # the next solve must not keep this level alive: its mesh (with the topology and
+        # patch caches), estimator maps and refinement arrays would be ~1 KB per vertex
+        result = mesh = refinement = last = None
         level += 1
     timings["refine"] = refine_total
     timings["solve"] = time.perf_counter() - t_start - refine_total
