@@ -153,7 +153,19 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
-class _Monitor:
+class _Table:
+    """A live table on stdout: the header when enabled, then one line per call."""
+
+    header = ""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        if enabled:
+            _out(self.header)
+            _out("-" * len(self.header))
+
+
+class _Monitor(_Table):
     """Live table of a solve: one line per history row (:mod:`fastmem.history`), every method.
 
     ``eta_disc`` and ``eta`` are printed on rows whose flux was reconstructed
@@ -164,12 +176,6 @@ class _Monitor:
         f"{'lev':>3} {'k':>3} {'inner':>5} {'total':>6} {'|A|':>8} {'changed':>7} "
         f"{'eta_disc':>10} {'eta_lin':>10} {'eta_alg':>10} {'eta':>10} {'sec':>7}"
     )
-
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
-        if enabled:
-            _out(self.header)
-            _out("-" * len(self.header))
 
     @staticmethod
     def _number(value, fresh=True) -> str:
@@ -188,7 +194,7 @@ class _Monitor:
         )
 
 
-class _LevelMonitor:
+class _LevelMonitor(_Table):
     """One line per mesh of a solve to a tolerance (a row of ``result.adaptivity``)."""
 
     header = (
@@ -196,12 +202,6 @@ class _LevelMonitor:
         f"{'eta_disc':>10} {'eta_lin':>10} {'eta_alg':>10} {'marked':>7} {'newton':>6} "
         f"{'cg':>5} {'sec':>7}"
     )
-
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
-        if enabled:
-            _out(self.header)
-            _out("-" * len(self.header))
 
     def __call__(self, row: dict) -> None:
         if not self.enabled:

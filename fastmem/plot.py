@@ -92,6 +92,19 @@ def _new_figure(figsize, *, pyplot: bool = False):
     return fig
 
 
+def _axes_row(axes, count: int, figsize, what: str) -> list:
+    """Return the given axes as a flat list of ``count``, or ``count`` new axes in a row."""
+    if axes is None:
+        fig = _new_figure(figsize)
+        return [fig.add_subplot(1, count, i + 1) for i in range(count)]
+    axes = list(np.ravel(np.asarray(axes, dtype=object)))
+    if len(axes) != count:
+        from .errors import ParameterError
+
+        raise ParameterError(f"{what} needs {count} axes, got {len(axes)}")
+    return axes
+
+
 def _column(history: dict, name: str) -> np.ndarray:
     return np.asarray(history[name], dtype=np.float64).ravel()
 
@@ -268,15 +281,7 @@ def plot_solution(result, axes=None):
     _require_matplotlib()
     from matplotlib.tri import Triangulation
 
-    if axes is None:
-        fig = _new_figure((15.0, 4.6))
-        axes = [fig.add_subplot(1, 3, i + 1) for i in range(3)]
-    else:
-        axes = list(np.ravel(np.asarray(axes, dtype=object)))
-        if len(axes) != 3:
-            from .errors import ParameterError
-
-            raise ParameterError(f"plot_solution needs 3 axes (u1, u2, gap), got {len(axes)}")
+    axes = _axes_row(axes, 3, (15.0, 4.6), "plot_solution (u1, u2, gap)")
     vertices = np.asarray(result.mesh.vertices, dtype=np.float64)
     tri = Triangulation(vertices[:, 0], vertices[:, 1], np.asarray(result.mesh.triangles))
     u1 = np.asarray(result.u1, dtype=np.float64)
@@ -365,13 +370,7 @@ def plot_adaptivity(result, axes=None, *, uniform=None):
     table = result.adaptivity
     if table is None:
         raise ParameterError("plot_adaptivity needs a result of fm.solve(scene, tol=...)")
-    if axes is None:
-        fig = _new_figure((12.0, 5.0))
-        axes = [fig.add_subplot(1, 2, i + 1) for i in range(2)]
-    else:
-        axes = list(np.ravel(np.asarray(axes, dtype=object)))
-        if len(axes) != 2:
-            raise ParameterError(f"plot_adaptivity needs 2 axes, got {len(axes)}")
+    axes = _axes_row(axes, 2, (12.0, 5.0), "plot_adaptivity")
     ax, mesh_ax = axes
     n = np.asarray(table["n_vertices"], dtype=np.float64)
     _plot_curves(ax, table, n, _ESTIMATOR_CURVES)
