@@ -9,15 +9,14 @@ Quick start::
     result.save("run.h5")
 """
 
-import os
-from importlib.metadata import PackageNotFoundError, version
+import os as _os
 
 # OpenMP workers (Numba's "omp" threading layer) that spin while idle turn
 # every short parallel kernel into a 5-15 ms wait as soon as another process
 # or a BLAS thread holds a core (measured on a 2-core machine: 15 ms vs 40 us
 # for an O(M) kernel on 131k triangles).  Passive waiting costs ~20 us per
 # call at most.  Set before Numba starts its pool; an explicit user setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _source_tree_kernels():
@@ -29,6 +28,7 @@ def _source_tree_kernels():
     which has no ``kernels`` subfolder: load ``../kernels`` under that name.
     """
     import importlib.util
+    import os
     import sys
 
     here = os.path.dirname(os.path.abspath(__file__))
@@ -59,10 +59,27 @@ from .result import Estimate, Result  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .solver import solve  # noqa: E402
 
-try:
-    __version__ = version("fastmem")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree
-    __version__ = "0+unknown"
+
+
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("fastmem")
+    except PackageNotFoundError:  # pragma: no cover - running from a source tree
+        return "0+unknown"
+
+
+__version__ = _package_version()
+
+
+def __getattr__(name):
+    # Parameter sweeps need the ``dask`` extra: imported on first use only.
+    if name in ("sweep", "load_sweep"):
+        from . import sweeps as _sweep_module
+
+        return getattr(_sweep_module, name)
+    raise AttributeError(f"module 'fastmem' has no attribute {name!r}")
 
 __all__ = [
     "Estimate",
@@ -76,6 +93,8 @@ __all__ = [
     "estimate",
     "get_threads",
     "load",
+    "load_sweep",
     "set_threads",
     "solve",
+    "sweep",
 ]
