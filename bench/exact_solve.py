@@ -19,7 +19,7 @@ def run(sizes, general_max):
 
     ms = fm.Manufactured()
     for path in ("decoupled", "general"):  # load the JIT caches outside the timings
-        fm.solve(ms.scene(fm.Mesh.square(4)), method="exact", path=path)
+        fm.solve(ms.scene(fm.Mesh.square(4)), method="exact", path=path, estimate=False)
     rows = []
     for n in sizes:
         mesh = fm.Mesh.square(n)
@@ -32,7 +32,7 @@ def run(sizes, general_max):
                 else:
                     scene = ms.scene(mesh)
                 t0 = time.perf_counter()
-                r = fm.solve(scene, method="exact", path=path)
+                r = fm.solve(scene, method="exact", path=path, estimate=False)
                 wall = time.perf_counter() - t0
                 row = {
                     "n": n,

@@ -58,7 +58,7 @@ from .mesh import Mesh  # noqa: E402
 from .result import Estimate, Result  # noqa: E402
 from .scene import Scene  # noqa: E402
 from .solver import solve  # noqa: E402
-
+from .warmup import warm_up  # noqa: E402
 
 
 def _package_version() -> str:
@@ -81,6 +81,7 @@ def __getattr__(name):
         return getattr(_sweep_module, name)
     raise AttributeError(f"module 'fastmem' has no attribute {name!r}")
 
+
 __all__ = [
     "Estimate",
     "FastmemError",
@@ -97,4 +98,5 @@ __all__ = [
     "set_threads",
     "solve",
     "sweep",
+    "warm_up",
 ]

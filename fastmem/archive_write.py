@@ -25,9 +25,19 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from .archive_doc import GROUPS, describe
 from .errors import ArchiveError, ParameterError
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "write_archive", "write_export"]
+__all__ = [
+    "ARCHIVE_SUFFIXES",
+    "EXPORT_SUFFIXES",
+    "FORMAT",
+    "FORMAT_VERSION",
+    "check_output",
+    "companion_files",
+    "write_archive",
+    "write_export",
+]
 
 logger = logging.getLogger("fastmem.archive")  # one logger name for all archive I/O
 
@@ -40,6 +50,10 @@ FORMAT_VERSION = 1
 _COMPRESS_ABOVE = 2**16
 _SOLUTION = {"u1": "u1", "u2": "u2", "lambda": "lam", "r1": "r1", "r2": "r2", "active": "active"}
 _EXPORT_SUFFIXES = (".vtu", ".xdmf")
+EXPORT_SUFFIXES = _EXPORT_SUFFIXES
+"""Suffixes :func:`write_export` understands (meshio formats)."""
+ARCHIVE_SUFFIXES = (".h5", ".hdf5")
+"""Suffixes the command line takes for a fastmem archive (the API does not enforce one)."""
 _USERBLOCK = 512  # bytes before the HDF5 superblock, for fastmem's integrity header
 _MAGIC = b"FASTMEM-ARCHIVE\n"
 _CHUNK = 1 << 20  # bytes per read while checksumming
@@ -97,11 +111,23 @@ def _write_array(group: h5py.Group, name: str, data) -> h5py.Dataset:
         chunks = (max(1, min(arr.shape[0], _COMPRESS_ABOVE // row)),) + arr.shape[1:]
         kwargs = {"chunks": chunks, "compression": "gzip", "compression_opts": 1, "shuffle": True}
     try:
-        return group.create_dataset(name, data=arr, **kwargs)
+        dataset = group.create_dataset(name, data=arr, **kwargs)
     except TypeError as exc:
         raise ArchiveError(
             f"cannot store {group.name.rstrip('/')}/{name} with dtype {arr.dtype}: {exc}"
         ) from exc
+    text, units = describe(f"{group.name.strip('/')}/{name}")
+    dataset.attrs["description"] = text
+    if units:
+        dataset.attrs["units"] = units
+    return dataset
+
+
+def _group(f: h5py.File, name: str, **kwargs) -> h5py.Group:
+    g = f.create_group(name, **kwargs)
+    if name not in ("estimators", "timings"):  # their attributes are data (totals, seconds)
+        g.attrs["description"] = GROUPS[name]
+    return g
 
 
 def _write_header(f: h5py.File, result) -> None:
@@ -117,13 +143,13 @@ def _write_header(f: h5py.File, result) -> None:
 
 
 def _write_mesh(f: h5py.File, mesh) -> None:
-    g = f.create_group("mesh")
+    g = _group(f, "mesh")
     _write_array(g, "vertices", mesh.vertices)
     _write_array(g, "triangles", mesh.triangles)
 
 
 def _write_solution(f: h5py.File, result) -> None:
-    g = f.create_group("solution")
+    g = _group(f, "solution")
     for name, field in _SOLUTION.items():
         _write_array(g, name, getattr(result, field))
 
@@ -137,7 +163,7 @@ def _write_estimate(f: h5py.File, estimate) -> None:
 
 
 def _write_history(f: h5py.File, history: dict, group: str = "history") -> None:
-    g = f.create_group(group, track_order=True)
+    g = _group(f, group, track_order=True)
     names = [_check_name("history column", k) for k in history]
     g.attrs.create("columns", names, dtype=h5py.string_dtype())
     for name in names:
@@ -183,6 +209,50 @@ def _target(path) -> Path:
     if p.is_dir():
         raise ArchiveError(f"cannot write {p}: it is a directory")
     return p
+
+
+def check_output(path, suffixes=ARCHIVE_SUFFIXES + EXPORT_SUFFIXES) -> tuple[Path, bool]:
+    """Check, before any work, that a result can be written to ``path``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file to write.
+    suffixes : tuple of str
+        Accepted suffixes (lower case, with the dot).
+
+    Returns
+    -------
+    (Path, bool)
+        The path, and whether a file of that name exists (and would be replaced).
+
+    Raises
+    ------
+    ParameterError
+        The suffix is not one of ``suffixes``.
+    ArchiveError
+        The directory does not exist or is not writable, or ``path`` is a directory.
+    """
+    target = _target(path)
+    suffix = target.suffix.lower()
+    if suffix not in suffixes:
+        raise ParameterError(
+            f"output {os.fspath(path)}: unknown suffix {suffix or '(none)'!r}; use one of "
+            f"{', '.join(suffixes)} (.h5/.hdf5: fastmem archive; .vtu/.xdmf: export for ParaView)"
+        )
+    parent = target.parent
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ArchiveError(f"cannot write {target}: directory {parent} is not writable")
+    exists = target.exists()
+    if exists and not os.access(target, os.W_OK) and not os.access(parent, os.W_OK):
+        raise ArchiveError(f"cannot replace {target}: not writable")
+    return target, exists
+
+
+def companion_files(path) -> list[Path]:
+    """Files written beside ``path`` by an export: ``run.xdmf`` has ``run.xdmf.h5``."""
+    p = Path(os.fspath(path))
+    return [p.with_name(p.name + ".h5")] if p.suffix.lower() == ".xdmf" else []
 
 
 def _fsync(path: Path) -> None:

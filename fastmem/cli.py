@@ -1,6 +1,6 @@
 """Command line: ``fastmem run``, ``info FILE.h5``, ``export FILE.h5 OUT``, ``plot FILE.h5``.
 
-``fastmem run`` with no option solves the default scene (MATH.md section 8):
+``fastmem run`` with no option solves the default scene (docs/method.md §8):
 the square (-1, 1)^2, mu1 = mu2 = 1, f1 = -1, f2 = 1, g = 0.1, on a structured
 mesh, with the adaptive inexact Newton-min (nested iteration over coarser
 meshes), prints one monitor line per estimator evaluation (or per Newton step
@@ -26,6 +26,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_N = 128
 DEFAULT_OUTPUT = "fastmem-result.h5"
+METHOD_CHOICES = ("inexact", "exact-amg", "exact")
 
 
 def _out(text: str = "") -> None:
@@ -44,7 +45,9 @@ def _build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    r = sub.add_parser("run", help="solve a scene (default: MATH.md section 8) and save it")
+    r = sub.add_parser(
+        "run", help="solve a scene (default: the square, docs/method.md §8) and save it"
+    )
     r.set_defaults(func=_cmd_run)
     mesh = r.add_mutually_exclusive_group()
     mesh.add_argument(
@@ -74,6 +77,7 @@ def _build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--method",
         default=None,
+        metavar="{" + ",".join(METHOD_CHOICES) + "}",
         help="inexact: AMG-CG stopped by the estimators (default); exact-amg: AMG-CG to "
         "round-off (default with --no-estimate); exact: sparse direct solves (small meshes)",
     )
@@ -103,10 +107,15 @@ def _build_parser() -> argparse.ArgumentParser:
         "-o",
         "--output",
         type=Path,
-        default=Path(DEFAULT_OUTPUT),
-        help=f"archive to write (default {DEFAULT_OUTPUT})",
+        action="append",
+        default=None,
+        metavar="FILE",
+        help=f"where to write the result (default {DEFAULT_OUTPUT}): .h5/.hdf5 a fastmem "
+        "archive, .vtu/.xdmf an export for ParaView (.xdmf with its heavy data in FILE.h5); "
+        "repeat for several files (-o run.h5 -o run.vtu).  Checked before the solve; an "
+        "existing file is replaced, and the run says so",
     )
-    r.add_argument("--no-save", action="store_true", help="do not write an archive")
+    r.add_argument("--no-save", action="store_true", help="write no file")
     r.add_argument(
         "--no-estimate",
         action="store_true",
@@ -220,12 +229,86 @@ def _adapt_keywords(args) -> dict:
     return {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
 
 
+def _outputs(args) -> list[tuple[Path, bool]]:
+    """Check the files ``fastmem run`` will write, before any work: [(path, exists)]."""
+    from .archive_write import check_output
+    from .errors import ParameterError
+
+    if args.no_save:
+        if args.output:
+            raise ParameterError("--no-save and -o/--output contradict each other: drop one")
+        return []
+    paths = args.output or [Path(DEFAULT_OUTPUT)]
+    if len({p.resolve() for p in paths}) != len(paths):
+        raise ParameterError(f"-o/--output names the same file twice: {[str(p) for p in paths]}")
+    return [check_output(p) for p in paths]
+
+
+def _write_outputs(result, outputs) -> None:
+    from .archive_write import ARCHIVE_SUFFIXES, companion_files
+
+    for path, existed in outputs:
+        if path.suffix.lower() in ARCHIVE_SUFFIXES:
+            result.save(path)
+            label = "archive"
+        else:
+            result.export(path)
+            label = "export"
+        extra = [str(c) for c in companion_files(path)]
+        notes = ([f"with {', '.join(extra)}"] if extra else []) + (
+            ["replaced the existing file"] if existed else []
+        )
+        _out(f"  {label:<17} {path}" + (f"  ({'; '.join(notes)})" if notes else ""))
+
+
+def _warm_up(args, method, mesh, adaptive) -> float:
+    """Compile or load the kernels first, saying so: the first run compiles for ~20 s."""
+    from .warmup import kernels_cached, warm_up
+
+    cached = kernels_cached()
+    if cached is False:
+        text = "  compiling Numba kernels (first run only, about 20 s) ..."
+    else:
+        text = "  loading compiled kernels ..."
+    if not args.quiet:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    done = warm_up(
+        method,
+        estimate=not args.no_estimate,
+        adaptive=adaptive,
+        unstructured=mesh.coarser() is None,
+    )
+    if not args.quiet:
+        _out(f" {done}")
+    return done.seconds
+
+
 def _cmd_run(args) -> int:
     from .config import set_threads
+    from .errors import ParameterError
     from .mesh import Mesh
     from .scene import Scene
     from .solver import solve
 
+    if args.method is not None and args.method not in METHOD_CHOICES:
+        raise ParameterError(
+            f"--method must be one of {', '.join(METHOD_CHOICES)}, got {args.method!r}"
+        )
+    adaptive = args.tol is not None or args.rtol is not None
+    if adaptive and args.no_estimate:
+        raise ParameterError("--tol/--rtol need the error bound: drop --no-estimate")
+    method = args.method
+    if method is None:
+        method = "exact-amg" if args.no_estimate else "inexact"
+    elif method == "inexact" and args.no_estimate:
+        raise ParameterError(
+            "--no-estimate cannot be combined with --method inexact: its stopping test needs "
+            "the estimator (use --method exact-amg or exact)"
+        )
+    if args.refine < 0:
+        raise ParameterError(f"--refine must be >= 0, got {args.refine}")
+    outputs = _outputs(args)  # before any work: a bad path must not cost a solve
     if args.threads is not None or args.blas_threads is not None:
         set_threads(numba=args.threads, blas=args.blas_threads)
     t0 = time.perf_counter()
@@ -237,25 +320,6 @@ def _cmd_run(args) -> int:
         mesh = Mesh.lshape(n) if args.domain == "lshape" else Mesh.square(n)
         source = f"{args.domain} n={n}"
     adapt = _adapt_keywords(args)
-    adaptive = args.tol is not None or args.rtol is not None
-    if adaptive and args.no_estimate:
-        from .errors import ParameterError
-
-        raise ParameterError("--tol/--rtol need the error bound: drop --no-estimate")
-    method = args.method
-    if method is None:
-        method = "exact-amg" if args.no_estimate else "inexact"
-    elif method == "inexact" and args.no_estimate:
-        from .errors import ParameterError
-
-        raise ParameterError(
-            "--no-estimate cannot be combined with --method inexact: its stopping test needs "
-            "the estimator (use --method exact-amg or exact)"
-        )
-    if args.refine < 0:
-        from .errors import ParameterError
-
-        raise ParameterError(f"--refine must be >= 0, got {args.refine}")
     for _ in range(args.refine):
         mesh = mesh.refine()
     scene = Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=args.g)
@@ -265,6 +329,10 @@ def _cmd_run(args) -> int:
         f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), g = {args.g:g}, "
         f"method = {method}"
     )
+    for path, existed in outputs:
+        if existed:
+            _out(f"  {path} exists and will be replaced when the run ends")
+    t_kernels = _warm_up(args, method, mesh, adaptive)
     if adaptive:
         goal = " or ".join(
             f"{name} {getattr(args, name):g}" for name in ("tol", "rtol") if getattr(args, name)
@@ -284,6 +352,7 @@ def _cmd_run(args) -> int:
         nested=False if args.no_nested else "auto",
     )
     result.timings["mesh"] = t_mesh
+    result.timings["kernels"] = t_kernels
     reason = result.parameters["solver"].get("stop_reason", "step limit reached")
     if adaptive:
         reason = result.parameters["adaptivity"]["stop_reason"]
@@ -311,17 +380,23 @@ def _cmd_run(args) -> int:
     r_norm = float(np.sqrt(result.r1 @ result.r1 + result.r2 @ result.r2))
     _out(f"  final |R|         {r_norm:.3e}")
     if result.estimate is not None:
-        tot = result.estimate.totals
-        _out(f"  error bound eta   {tot['eta']:.4e}   (guaranteed: |||u - u_h||| <= eta)")
-        _out(f"    eta_disc        {tot['eta_disc']:.4e}")
-        _out(f"    eta_lin         {tot['eta_lin']:.4e}")
-        _out(f"    eta_alg         {tot['eta_alg']:.4e}")
+        parts = result.estimate.components
+        _out(f"  error bound eta   {result.eta:.4e}   (guaranteed: |||u - u_h||| <= eta)")
+        _out("  components        eta <= eta_disc + eta_lin + eta_alg; each bounds a part of")
+        _out("                    the error, so eta may be smaller than eta_disc alone")
+        for key, label in (
+            ("eta_disc", "discretisation"),
+            ("eta_lin", "linearisation"),
+            ("eta_alg", "algebraic"),
+        ):
+            _out(f"    {key:<15} {parts[key]:.4e}   ({label})")
         if "estimate" in result.timings:
             _out(f"  estimate seconds  {result.timings['estimate']:.3f}")
-    _out(f"  seconds           {result.timings['total']:.3f} solve, {t_mesh:.3f} mesh")
-    if not args.no_save:
-        result.save(args.output)
-        _out(f"  archive           {args.output}")
+    _out(
+        f"  seconds           {result.timings['total']:.3f} solve, {t_kernels:.3f} kernels "
+        f"(compile/load), {t_mesh:.3f} mesh"
+    )
+    _write_outputs(result, outputs)
     return 0 if result.converged else 1
 
 
@@ -344,11 +419,19 @@ def _cmd_info(args) -> int:
     params = summary["parameters"]
     for key in ("mu1", "mu2", "f1", "f2", "g"):
         if key in params:
-            _out(f"  {key:<17} {params[key]}")
+            value = params[key]
+            if isinstance(value, dict) and value.get("kind") == "constant":
+                value = value.get("value")
+            elif isinstance(value, dict) and "kind" in value:
+                value = value["kind"]
+            _out(f"  {key:<17} {value}")
     if summary["has_estimate"]:
-        for k in ("eta", "eta_disc", "eta_lin", "eta_alg"):
-            if k in summary["estimator_totals"]:
-                _out(f"  {k:<17} {summary['estimator_totals'][k]:.4e}")
+        totals = summary["estimator_totals"]
+        if "eta" in totals:
+            _out(f"  {'eta':<17} {totals['eta']:.4e}   (guaranteed bound of the energy error)")
+        for k in ("eta_disc", "eta_lin", "eta_alg"):
+            if k in totals:
+                _out(f"    {k:<15} {totals[k]:.4e}")
     _out(
         f"  history           {summary['n_history_rows']} rows: "
         f"{', '.join(summary['history_columns'])}"
@@ -368,9 +451,13 @@ def _cmd_info(args) -> int:
 
 def _cmd_export(args) -> int:
     from .archive import export, load
+    from .archive_write import EXPORT_SUFFIXES, check_output, companion_files
 
-    export(load(args.file), args.out)
-    _out(f"wrote {args.out}")
+    out, existed = check_output(args.out, EXPORT_SUFFIXES)  # before reading the archive
+    export(load(args.file), out)
+    extra = [str(c) for c in companion_files(out)]
+    note = f" (heavy data in {', '.join(extra)}; keep the files together)" if extra else ""
+    _out(f"wrote {out}{note}" + (" (replaced the existing file)" if existed else ""))
     return 0
 
 

@@ -22,6 +22,7 @@ __all__ = [
     "FastmemWarning",
     "InputTypeError",
     "MeshError",
+    "MeshFileError",
     "MeshWarning",
     "NumericalError",
     "ParameterError",
@@ -39,6 +40,10 @@ class InputTypeError(FastmemError, TypeError):
 
 class MeshError(FastmemError, ValueError):
     """A mesh is invalid: wrong shapes, degenerate, tangled or non-manifold elements."""
+
+
+class MeshFileError(MeshError, OSError):
+    """A mesh file is missing or cannot be read (also an ``OSError``, like a missing archive)."""
 
 
 class ParameterError(FastmemError, ValueError):

@@ -53,6 +53,8 @@ arrays, and its own arrays are read-only.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import warnings
 from pathlib import Path
@@ -63,6 +65,7 @@ from .errors import (
     DataError,
     InputTypeError,
     MeshError,
+    MeshFileError,
     MeshWarning,
     ParameterError,
     ReadOnlyError,
@@ -623,11 +626,22 @@ class Mesh:
 
         path = Path(path)
         if not path.exists():
-            raise MeshError(f"mesh file not found: {path}")
+            raise MeshFileError(f"mesh file not found: {path}")
+        if path.is_dir():
+            raise MeshFileError(f"mesh file {path} is a directory")
+        said = io.StringIO()
         try:
-            m = meshio.read(path)
+            with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+                m = meshio.read(path)
         except (Exception, SystemExit) as exc:  # meshio raises many types, even SystemExit
-            raise MeshError(f"cannot read mesh file {path}: {exc or type(exc).__name__}") from exc
+            detail = " ".join(said.getvalue().split()) or (
+                "" if isinstance(exc, SystemExit) else str(exc)
+            )
+            raise MeshFileError(
+                f"cannot read mesh file {path} with meshio ({type(exc).__name__}"
+                f"{': ' + detail if detail else ''}); is it a mesh file in a format meshio "
+                "knows, with a matching suffix (.msh, .vtu, .xdmf, ...)?"
+            ) from exc
         blocks = [c.data for c in m.cells if c.type == "triangle"]
         if not blocks:
             kinds = sorted({c.type for c in m.cells})

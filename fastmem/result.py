@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Estimate", "Result", "check_nodal", "check_result", "check_triple"]
+__all__ = ["COMPONENTS", "Estimate", "Result", "check_nodal", "check_result", "check_triple"]
 
 logger = logging.getLogger(__name__)
 
@@ -68,6 +68,9 @@ def check_triple(mesh, triple, prefix=""):
 
 _NODAL_FIELDS = ("u1", "u2", "lam", "r1", "r2")
 
+#: The three components of the bound, ``eta <= eta_disc + eta_lin + eta_alg``.
+COMPONENTS = ("eta_disc", "eta_lin", "eta_alg")
+
 
 def check_result(result) -> None:
     """Check the invariants of a :class:`Result` (cheap, O(N + M), no copies).
@@ -112,16 +115,24 @@ def check_result(result) -> None:
                 raise DataError(f"estimator map {key!r} must have shape ({m},), got {shape}")
 
 
-@dataclass
+@dataclass(repr=False)
 class Estimate:
     """A posteriori error estimate of a triple (filled by the estimator module).
 
     Attributes
     ----------
     totals : dict of str to float
-        Global values, at least ``eta``, ``eta_disc``, ``eta_lin``, ``eta_alg``.
+        Every global value: ``eta``, ``eta_disc``, ``eta_lin``, ``eta_alg`` and
+        the diagnostics (see :attr:`components` and :attr:`diagnostics`).
     maps : dict of str to ndarray of shape (M,)
         Per-triangle indicator maps (e.g. ``eta_F1``, ``eta_C``), kept for adaptivity.
+
+    Notes
+    -----
+    ``eta`` is the guaranteed bound; ``eta_disc``, ``eta_lin`` and ``eta_alg``
+    are *not* a partition of it but three upper bounds of its parts, with
+    ``eta <= eta_disc + eta_lin + eta_alg`` (docs/method.md §6).  So ``eta``
+    may well be smaller than ``eta_disc`` alone.
     """
 
     totals: dict = field(default_factory=dict)
@@ -142,8 +153,49 @@ class Estimate:
         """The guaranteed upper bound of the energy error."""
         return float(self.totals["eta"])
 
+    @property
+    def components(self) -> dict:
+        """The three components of the bound: ``eta_disc``, ``eta_lin``, ``eta_alg``.
 
-@dataclass
+        Discretisation, linearisation and algebraic parts,
+        ``eta <= eta_disc + eta_lin + eta_alg``.
+        """
+        return {k: float(self.totals[k]) for k in COMPONENTS if k in self.totals}
+
+    @property
+    def diagnostics(self) -> dict:
+        """Everything in :attr:`totals` but ``eta`` and the three components.
+
+        The constants of the bound (``C_F``, ``a``, ``c``, ``eta_nc``,
+        ``eta_glob1``, ``eta_glob2``), the seed slides' unguaranteed variant
+        (``eta_unguaranteed_slides``, for comparison only) and timings
+        (``seconds_flux``, ``seconds_estimators``).
+        """
+        return {k: v for k, v in self.totals.items() if k != "eta" and k not in COMPONENTS}
+
+    def __repr__(self) -> str:
+        parts = ", ".join(f"{k}={v:.4e}" for k, v in self.components.items())
+        eta = self.totals.get("eta")
+        head = "eta=None" if eta is None else f"eta={eta:.4e}"
+        return f"Estimate({head}{', ' if parts else ''}{parts}, maps={sorted(self.maps)})"
+
+
+def _freeze(result) -> None:
+    """Make the arrays of a Result read-only, like those of Mesh and Scene.
+
+    Arrays the caller passed in are frozen in place (no copy): a Result owns its data.
+    """
+    arrays = [getattr(result, name) for name in (*_NODAL_FIELDS, "active")]
+    if result.estimate is not None:
+        arrays += list(result.estimate.maps.values())
+    for table in (result.history, result.adaptivity or {}):
+        arrays += list(table.values())
+    for arr in arrays:
+        if isinstance(arr, np.ndarray):
+            arr.flags.writeable = False
+
+
+@dataclass(repr=False)
 class Result:
     """Solution of a two-membrane contact problem with its provenance.
 
@@ -185,6 +237,12 @@ class Result:
         (vertices, triangles, eta and its components, energy norm, target,
         marked fraction, Newton steps, CG iterations, seconds); archived.
 
+    Notes
+    -----
+    The arrays of a Result (nodal fields, estimator maps, history and
+    adaptivity columns) are read-only, like those of Mesh and Scene: copy
+    one (``result.u1.copy()``) to modify it.
+
     Raises
     ------
     NumericalError
@@ -213,6 +271,16 @@ class Result:
 
     def __post_init__(self):
         check_result(self)
+        _freeze(self)
+
+    def __repr__(self) -> str:
+        eta = "None" if self.eta is None else f"{self.eta:.4e}"
+        adapt = "" if self.adaptivity is None else f", meshes={len(self.adaptivity['level'])}"
+        return (
+            f"Result({self.mesh!r}, method={self.method!r}, path={self.path!r}, "
+            f"converged={self.converged}, n_newton={self.n_newton}, eta={eta}, "
+            f"contact_fraction={self.contact_fraction:.4f}{adapt})"
+        )
 
     @property
     def gap(self) -> np.ndarray:
@@ -232,10 +300,13 @@ class Result:
 
     @property
     def eta_components(self) -> dict | None:
-        """``{"eta_disc", "eta_lin", "eta_alg"}`` of the estimate, or None."""
-        if self.estimate is None:
-            return None
-        return {k: v for k, v in self.estimate.totals.items() if k != "eta"}
+        """``{"eta_disc", "eta_lin", "eta_alg"}`` of the estimate, or None without one.
+
+        ``eta <= eta_disc + eta_lin + eta_alg``; the components bound parts of
+        the error, so ``eta`` can be below ``eta_disc``.  Constants and timings
+        are in ``result.estimate.diagnostics``.
+        """
+        return None if self.estimate is None else self.estimate.components
 
     # The writers live in fastmem.archive_write, which does not import this module;
     # fastmem.archive imports it to build loaded Results (no import circle).

@@ -91,7 +91,7 @@ def _check_mu(value, name, n_triangles):
     if _is_real_scalar(value):
         v = _scalar(value, name, ParameterError)
         if not np.isfinite(v) or v <= 0:
-            raise ParameterError(f"{name} must be positive and finite, got {v!r}")
+            raise ParameterError(f"{name} must be positive and finite, got {float(v)!r}")
         if not lo <= v <= hi:
             raise ParameterError(f"{name} = {v:g} is outside the supported range [{lo:g}, {hi:g}]")
         return v
@@ -102,7 +102,7 @@ def _check_mu(value, name, n_triangles):
             k = int(np.flatnonzero(bad)[0])
             raise ParameterError(
                 f"{name} must be positive and finite on every triangle; "
-                f"{int(bad.sum())} values are not (first: triangle {k}, value {arr[k]!r})"
+                f"{int(bad.sum())} values are not (first: triangle {k}, value {float(arr[k])!r})"
             )
         out = (arr < lo) | (arr > hi)
         if out.any():
@@ -126,7 +126,7 @@ def _check_load(value, name, n_vertices):
     if _is_real_scalar(value):
         v = _scalar(value, name, DataError)
         if not np.isfinite(v):
-            raise DataError(f"{name} must be finite, got {v!r}")
+            raise DataError(f"{name} must be finite, got {float(v)!r}")
         return v
     if isinstance(value, (np.ndarray, list, tuple)):
         arr = _real_array(value, name, (n_vertices,), "one value per vertex")
@@ -275,7 +275,7 @@ class Scene:
         elif _is_real_scalar(g):
             stored = _scalar(g, "g", DataError)
             if not np.isfinite(stored):
-                raise DataError(f"g must be finite, got {stored!r}")
+                raise DataError(f"g must be finite, got {float(stored)!r}")
             vals = np.full(bnd.size, stored)
         elif isinstance(g, (np.ndarray, list, tuple)):
             stored = _real_array(g, "g", (mesh.n_vertices,), "one value per vertex")
@@ -290,7 +290,7 @@ class Scene:
             k = int(np.argmin(vals))
             raise ParameterError(
                 f"g must be >= 0 on the boundary (membrane 1 above membrane 2 there), "
-                f"got {vals[k]!r} at vertex {int(bnd[k])}"
+                f"got {float(vals[k])!r} at vertex {int(bnd[k])}"
             )
         # The validated boundary values are the ones used: a callable is evaluated once.
         out = np.zeros(mesh.n_vertices)

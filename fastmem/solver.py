@@ -46,7 +46,7 @@ def solve(
     initial=None,
     monitor=None,
     blas_threads: int | None = None,
-    estimate: bool = False,
+    estimate: bool = True,
     gamma_alg: float = 0.1,
     gamma_lin: float = 0.1,
     max_inner: int = 500,
@@ -95,9 +95,11 @@ def solve(
         BLAS threads during the solve (default :func:`fastmem.get_threads`).
     estimate : bool
         Attach the guaranteed a posteriori error bound of the returned triple
-        (:func:`fastmem.estimate`).  ``"inexact"`` computes it anyway (its
-        stopping test needs it) and always attaches it; the other methods
-        reconstruct no flux without ``estimate=True``.
+        (:func:`fastmem.estimate`; ``result.eta``), for every method by
+        default.  ``estimate=False`` skips the flux reconstruction for
+        ``"exact"`` and ``"exact-amg"`` (``result.eta`` is then None);
+        ``"inexact"`` computes the bound anyway (its stopping test needs it)
+        and always attaches it.
     gamma_alg, gamma_lin : float
         Stopping parameters of ``"inexact"`` (default 0.1 each).
     max_inner : int
