@@ -2,7 +2,7 @@
 
 Coupled system in all three unknowns ``(u1, u2, lam)`` (3N x 3N, one row
 block per unknown), assembled with :func:`scipy.sparse.bmat` and solved with
-:func:`scipy.sparse.linalg.spsolve` at every step (MATH.md sections 2 and 3.1)::
+:func:`scipy.sparse.linalg.spsolve` at every step (docs/method.md §2 and 3.1)::
 
     interior a:   mu1 (A u1)_a - B_a lam_a = F1_a
                   mu2 (A u2)_a + B_a lam_a = F2_a

@@ -220,7 +220,7 @@ def plot_work_precision(payload, path):
     ax.set_ylabel("energy error  |||u - u_h|||   (solid)   /   bound $\\eta$ (dashed)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    _title(fig, payload, "Work-precision on the manufactured solution (MATH.md section 7)")
+    _title(fig, payload, "Work-precision on the manufactured solution (docs/method.md §7)")
     return _save(fig, path)
 
 
@@ -300,7 +300,7 @@ def plot_adaptivity(payload, path):
     fig, axes = _new(ncols=len(names) + 1, size=(6.0, 5.0))
     titles = {
         "lshape": "L-shape, default data (error unknown)",
-        "manufactured": "square, manufactured solution (MATH.md section 7)",
+        "manufactured": "square, manufactured solution (docs/method.md §7)",
     }
     colors = {"uniform": "tab:orange", "adaptive": "tab:blue"}
     for ax, name in zip(axes, names, strict=False):

@@ -1,10 +1,10 @@
-"""Adaptive against uniform refinement: eta and error against N, time to a tolerance (MATH.md §9).
+"""Adaptive against uniform refinement: eta and error against N, time to a tolerance.
 
 Two cases:
 
 * ``lshape``: the L-shaped domain (-1, 1)^2 minus [0, 1) x (-1, 0] with the
   default data (mu = (1, 1), f = (-1, 1), g = 0.1); the true error is unknown.
-* ``manufactured``: the default manufactured solution of MATH.md section 7 on
+* ``manufactured``: the default manufactured solution of docs/method.md §7 on
   the square (-1, 1)^2; the true energy error is computed on every mesh
   (``Manufactured.energy_error``, quadrature of degree 7).
 

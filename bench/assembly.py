@@ -1,4 +1,4 @@
-"""Assembly benchmark: fastmem P1 stiffness/mass/load versus scikit-fem (BENCHMARKS.md #1).
+"""Assembly benchmark: fastmem P1 stiffness/mass/load versus scikit-fem.
 
 Splits fastmem's time into the local-matrix kernel (COO values), the gather
 into CSR, the once-per-mesh pattern and position map, and reports Numba

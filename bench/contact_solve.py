@@ -1,9 +1,9 @@
-"""The contact solve in Poisson units: inexact vs exact-amg vs exact vs naive (BENCHMARKS.md #3).
+"""The contact solve in Poisson units: inexact vs exact-amg vs exact vs naive.
 
 For each mesh size: one pyamg smoothed-aggregation Poisson solve (setup + CG
 to 1e-8 on the interior Laplacian, f = 1, BLAS limited to one thread;
 ``bench._common.poisson_unit``) measured in the same run as the unit.  Then,
-for each scene (the default scene of MATH.md section 8 and the default
+for each scene (the default scene of docs/method.md §8 and the default
 manufactured solution of section 7), every configuration with its Newton
 steps (per nested level and in total), CG iterations, time (median of up to
 ``--repeat`` runs, fewer when one run exceeds ``--budget`` seconds), time in

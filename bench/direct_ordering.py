@@ -78,7 +78,9 @@ def reference_contact():
     import fastmem as fm
 
     mesh = fm.Mesh.square(32)
-    r = fm.solve(fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), method="exact", estimate=False)
+    r = fm.solve(
+        fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), method="exact", estimate=False
+    )
     return cKDTree(mesh.vertices), r.lam > 0
 
 

@@ -49,7 +49,7 @@ def run(sizes, general_max):
                 }
                 if path == "decoupled":
                     ref = r
-                else:  # with exact solves both paths give the same iterates (MATH.md 3.3)
+                else:  # with exact solves both paths give the same iterates (docs/method.md §3.3)
                     row["max_abs_diff_u_vs_decoupled"] = float(
                         max(np.abs(r.u1 - ref.u1).max(), np.abs(r.u2 - ref.u2).max())
                     )

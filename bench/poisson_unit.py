@@ -1,4 +1,4 @@
-"""The Poisson unit on its own: pyamg SA setup + CG to 1e-8 (BENCHMARKS.md #2).
+"""The Poisson unit on its own: pyamg SA setup + CG to 1e-8.
 
 The unit in which the solver benchmarks express cost: the P1 Laplacian of the
 structured n x n square mesh on the interior vertices, f = 1, pyamg's

@@ -1,6 +1,6 @@
-"""Scaling of the whole pipeline mesh -> solve -> estimate -> archive (BENCHMARKS.md #6).
+"""Scaling of the whole pipeline mesh -> solve -> estimate -> archive.
 
-The default scene (MATH.md section 8) on the structured n x n square mesh,
+The default scene (docs/method.md §8) on the structured n x n square mesh,
 one subprocess per size so that the peak resident memory is that of one
 size alone.  Phases, each timed on its own:
 
@@ -176,7 +176,7 @@ def main(argv=None):
             "repeat": args.repeat,
             "budget_s": args.budget,
             "quick": args.quick,
-            "scene": "default (MATH.md section 8): mu=(1, 1), f=(-1, 1), g=0.1",
+            "scene": "default (docs/method.md §8): mu=(1, 1), f=(-1, 1), g=0.1",
             "memory": "subprocess per size" if not args.in_process else "one process",
         },
         "phases": list(PHASES),

@@ -1,6 +1,6 @@
-"""Thread scaling of the parallel Numba kernels: 1 vs all threads (BENCHMARKS.md #6).
+"""Thread scaling of the parallel Numba kernels: 1 vs all threads.
 
-For each mesh size (default scene, MATH.md section 8, at its discrete
+For each mesh size (default scene, docs/method.md §8, at its discrete
 solution) and each parallel kernel:
 
 * ``assembly``: ``assemble_stiffness`` (fused local-matrix + CSR gather kernel);

@@ -1,6 +1,6 @@
-"""Work-precision on the manufactured solution: time against error and eta (BENCHMARKS.md #5).
+"""Work-precision on the manufactured solution: time against error and eta.
 
-The default manufactured solution of MATH.md section 7 on the structured
+The default manufactured solution of docs/method.md §7 on the structured
 square meshes n x n, n doubling.  For every mesh and method (``exact``:
 sparse direct Newton-min, up to ``--exact-max``; ``exact-amg``: AMG solves to
 round-off; ``inexact``: adaptive stopping by the estimators) the wall time of

@@ -1,6 +1,6 @@
 r"""The linear step of method "inexact": AMG-preconditioned CG stopped by the estimators.
 
-MATH.md sections 3.4 and 6.  Every inner (CG) iterate is mapped to a full
+docs/method.md §3.4 and 6.  Every inner (CG) iterate is mapped to a full
 triple ``(u1, u2, lam)`` (``lam = 0`` on the inactive set, ``lam`` from the
 first equation on the active set), its residuals ``R1, R2`` are formed and the
 estimators are evaluated on it.  With :math:`\gamma_{alg}, \gamma_{lin}`
@@ -28,7 +28,7 @@ same systems to round-off instead.
 Linear steps:
 
 - general path: CG on the reduced SPD system :math:`P^T K P x = P^T (F - K u_B)`
-  (MATH.md 3.2), with a fresh AMG hierarchy whenever the active set changed
+  (docs/method.md §3.2), with a fresh AMG hierarchy whenever the active set changed
   (the system changes size);
 - decoupled path: one CG for the sum ``s`` on the interior Laplacian
   (hierarchy built once, advanced only while its part of :math:`\eta_{alg}`

@@ -1,4 +1,4 @@
-r"""Solving to a guaranteed tolerance: the adaptive refinement loop (MATH.md section 9).
+r"""Solving to a guaranteed tolerance: the adaptive refinement loop (docs/method.md §9).
 
 ``fm.solve(scene, tol=1e-3)`` (or ``rtol=``) runs, from the scene's mesh,
 

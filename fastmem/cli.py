@@ -148,13 +148,17 @@ def _build_parser() -> argparse.ArgumentParser:
 
     i = sub.add_parser("info", help="summarise a result archive")
     i.set_defaults(func=_cmd_info)
-    i.add_argument("file", type=Path)
+    i.add_argument("file", type=Path, help="result archive (.h5)")
     i.add_argument("--json", action="store_true", help="print the summary as JSON")
 
     e = sub.add_parser("export", help="export a result archive to VTU or XDMF")
     e.set_defaults(func=_cmd_export)
-    e.add_argument("file", type=Path)
-    e.add_argument("out", type=Path)
+    e.add_argument("file", type=Path, help="result archive (.h5)")
+    e.add_argument(
+        "out",
+        type=Path,
+        help="file to write: .vtu (one file) or .xdmf (with its heavy data in OUT.h5)",
+    )
 
     from .plot import add_parser as _add_plot
 

@@ -20,13 +20,13 @@ n_active        int      size of the active set the step was solved with
 n_changed       int      vertices whose membership changes if the next step starts from this
                          iterate (0: the active set has settled)
 comp_norm       float    ``||min(u1 - u2, lam)||`` over interior vertices
-res_norm        float    ``||(R1, R2)||``, the algebraic residual (MATH.md 2)
+res_norm        float    ``||(R1, R2)||``, the algebraic residual (docs/method.md §2)
 eta_disc        float    eta_disc used by the stopping test: fresh when ``fresh_disc`` is 1,
                          else the last fresh value of the level or the value predicted from
                          the coarser level; NaN where none exists (``"exact"`` and
                          ``"exact-amg"`` without ``full_history``)
-eta_lin         float    linearisation estimator (MATH.md 6), every row
-eta_alg         float    algebraic estimator (MATH.md 6), every row
+eta_lin         float    linearisation estimator (docs/method.md §6), every row
+eta_alg         float    algebraic estimator (docs/method.md §6), every row
 eta             float    the guaranteed bound of this row's iterate where a flux was
                          reconstructed (``fresh_disc`` is 1); NaN elsewhere
 fresh_disc      int      1 when the flux was reconstructed for this row's iterate

@@ -1,6 +1,6 @@
 r"""Linear steps of Newton-min: given an active set, return the next full triple.
 
-Two formulations (MATH.md sections 3.2 and 3.3) with the same interface::
+Two formulations (docs/method.md §3.2 and 3.3) with the same interface::
 
     step = GeneralStep(scene)            # or DecoupledStep(scene)
     u1, u2, lam = step.solve(active)     # active: bool mask over interior vertices
@@ -63,7 +63,7 @@ def _factor(mat, coordinates):
 def residuals(scene, u1, u2, lam):
     """Algebraic residuals ``R1 = F1 - A1 u1 + B lam``, ``R2 = F2 - A2 u2 - B lam``.
 
-    Zero at boundary vertices (MATH.md section 2).
+    Zero at boundary vertices (docs/method.md §2).
 
     Returns
     -------
@@ -101,7 +101,7 @@ class _Base:
 
 
 class GeneralStep(_Base):
-    """Newton-min linear step on the reduced SPD system (MATH.md section 3.2)."""
+    """Newton-min linear step on the reduced SPD system (docs/method.md §3.2)."""
 
     name = "general"
 
@@ -156,7 +156,7 @@ class GeneralStep(_Base):
 
 
 class DecoupledStep(_Base):
-    """Newton-min linear step on the decoupled sum/gap system (MATH.md section 3.3)."""
+    """Newton-min linear step on the decoupled sum/gap system (docs/method.md §3.3)."""
 
     name = "decoupled"
 

@@ -1,4 +1,4 @@
-r"""Manufactured solutions of the two-membrane contact problem (MATH.md §7).
+r"""Manufactured solutions of the two-membrane contact problem (docs/method.md §7).
 
 On :math:`\Omega = (-1, 1)^2` let :math:`b(x, y) = (1 - x^2)(1 - y^2)` and
 take parameters :math:`\mu_1, \mu_2 > 0`, :math:`g > 0`, :math:`\beta > 0`,
@@ -13,7 +13,7 @@ take parameters :math:`\mu_1, \mu_2 > 0`, :math:`g > 0`, :math:`\beta > 0`,
     \text{ for the discontinuous variant)}, \\
     f_1 &= -\mu_1 \Delta u_1 - \lambda, \qquad f_2 = -\mu_2 \Delta u_2 + \lambda,
 
-solve the problem of MATH.md §1: the gap is :math:`u_1 - u_2 = w \ge 0`,
+solve the problem of docs/method.md §1: the gap is :math:`u_1 - u_2 = w \ge 0`,
 :math:`w = 0` on the contact set :math:`\{q \le 0\} = \{b \ge g/\beta\}`
 where :math:`\lambda` may be positive, :math:`w = g` and :math:`b = 0` on
 :math:`\partial\Omega`, so that :math:`u_1 = g` and :math:`u_2 = 0` there.
@@ -35,7 +35,7 @@ defaults :math:`g = 0.1, \beta = 0.25, s_0 = 1, \kappa = 1` give the contact
 set :math:`\{b \ge 0.4\}`; :math:`\kappa = 0` is the degenerate case
 :math:`\lambda \equiv 0` on a contact set of positive measure. (Note that this
 :math:`\kappa` is a parameter of the manufactured :math:`\lambda`, unrelated to
-the :math:`\kappa = 1/\mu_1 + 1/\mu_2` of the decoupled solver in MATH.md §3.3.)
+the :math:`\kappa = 1/\mu_1 + 1/\mu_2` of the decoupled solver in docs/method.md §3.3.)
 
 Errors of discrete solutions are measured in the energy norm
 :math:`|||v|||^2 = \mu_1 \|\nabla v_1\|^2 + \mu_2 \|\nabla v_2\|^2` with a
@@ -70,7 +70,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Smallest quadrature degree accepted for error integrals (MATH.md §7).
+#: Smallest quadrature degree accepted for error integrals (docs/method.md §7).
 MIN_ERROR_DEGREE = 6
 
 #: Default quadrature degree for error integrals.
@@ -684,7 +684,7 @@ class Manufactured:
 
         On boundary vertices ``u1`` is set to exactly ``g``, ``u2`` and ``lam``
         to exactly ``0`` (the formulas give these values up to round-off), so
-        the triple is admissible for the discrete problem of MATH.md §2.
+        the triple is admissible for the discrete problem of docs/method.md §2.
 
         Parameters
         ----------

@@ -163,7 +163,7 @@ def warm_active_set(scene: Scene, triple) -> np.ndarray:
     structured meshes, by which it changes the gap at its own vertex:
     dividing by it was measured too and cost 3 more Newton steps in total on
     the default scene at n = 512 and 1024).  ``scene.active_c`` is not
-    used here.  The rule of MATH.md 3.1 with c = 1 compares a pressure with a length;
+    used here.  The rule of docs/method.md §3.1 with c = 1 compares a pressure with a length;
     on a prolonged triple (where lam > 0 and gap > 0 overlap on the coarse
     front) it made every fine vertex with interpolated lam > 0 active and the
     next Newton steps retreat from the overshoot one layer at a time

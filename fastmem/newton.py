@@ -1,4 +1,4 @@
-r"""Newton-min on one mesh: one loop for every method (MATH.md 3.1, 3.4 and 6).
+r"""Newton-min on one mesh: one loop for every method (docs/method.md §3.1, 3.4 and 6).
 
 At step k the active (contact) set is read off the previous iterate,
 
@@ -15,7 +15,7 @@ At step k the active (contact) set is read off the previous iterate,
 - the **active-set update** and the **stopping rule**: with exact linear steps
   (``"exact"``, ``"exact-amg"``) Newton-min stops when the active set repeats
   (then ``min(gap, lambda) = 0`` and the residuals are at round-off); with
-  ``"inexact"`` when the estimator criteria of MATH.md 6 hold for a fresh
+  ``"inexact"`` when the estimator criteria of docs/method.md §6 hold for a fresh
   ``eta_disc`` of the returned iterate (:class:`Checks`);
 - the **safeguard**: an active set that comes back (cycling, possible when
   the stiffness matrix is not an M-matrix) or no progress for
@@ -121,7 +121,7 @@ class Checks:
 
     Called by a linear step as ``check(triple, inner_iterations, roundoff)``
     for every iterate it wants judged.  The flux (``eta_disc``) is
-    reconstructed only when a criterion needs a fresh value (MATH.md 6), or
+    reconstructed only when a criterion needs a fresh value (docs/method.md §6), or
     at every row with ``full_history``.
     """
 
@@ -182,7 +182,7 @@ class Checks:
         return verdict
 
     def _criteria(self, last, eta_lin, eta_alg, roundoff):
-        """Inner and outer criteria of MATH.md 6, with a fresh eta_disc only when needed."""
+        """Inner and outer criteria of docs/method.md §6, with a fresh eta_disc only when needed."""
         if not (math.isfinite(eta_lin) and math.isfinite(eta_alg)):
             raise NumericalError(
                 f"inexact Newton-min step {self.k} on level {self.level}: the estimators are "
@@ -331,7 +331,7 @@ def newton_min(
         checked instead of followed by a needless Newton step.
     prolonged : bool
         ``init`` was prolonged from a coarser level: its first active set is
-        :func:`fastmem.nested.warm_active_set` (else the rule of MATH.md 3.1).
+        :func:`fastmem.nested.warm_active_set` (else the rule of docs/method.md §3.1).
     """
     no = options.newton
     step = make_linear_step(scene, options)

@@ -44,7 +44,7 @@ __all__ = [
 
 #: Solution methods of :func:`fastmem.solve` (how each linear step is solved).
 METHODS = ("inexact", "exact-amg", "exact")
-#: Linear-step formulations (MATH.md 3.2 and 3.3).
+#: Linear-step formulations (docs/method.md §3.2 and 3.3).
 PATHS = ("auto", "general", "decoupled")
 
 #: Default vertex limit of the adaptive loop (about 10M triangles; ~12 GB at the

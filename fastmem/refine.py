@@ -1,4 +1,4 @@
-r"""Adaptive refinement: Dörfler marking and newest-vertex bisection (MATH.md section 9).
+r"""Adaptive refinement: Dörfler marking and newest-vertex bisection (docs/method.md §9).
 
 :func:`refine_marked` refines a mesh by newest-vertex bisection (NVB) with
 conforming closure; :func:`dorfler_mark` selects the triangles to refine.

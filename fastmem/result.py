@@ -207,7 +207,7 @@ class Result:
         Nodal values of the two membranes and of the contact pressure
         (``u1 = g``, ``u2 = 0``, ``lam = 0`` on boundary vertices).
     r1, r2 : ndarray of shape (N,)
-        Algebraic residual vectors of the returned triple (MATH.md section 2),
+        Algebraic residual vectors of the returned triple (docs/method.md §2),
         zero at boundary vertices.
     active : ndarray of bool, shape (N,)
         The contact (active) set of the last Newton-min step.

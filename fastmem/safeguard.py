@@ -3,7 +3,7 @@ r"""Safeguard of Newton-min: a monotone feasible active-set iteration on the ene
 Plain Newton-min (primal-dual active set) converges in finitely many steps
 when the stiffness matrix is an M-matrix, but it may cycle, or wander without
 reducing ``||min(gap, lam)||``, when it is not (obtuse or badly perturbed
-triangles, MATH.md section 3).  The discrete problem is a strictly convex
+triangles, docs/method.md §3).  The discrete problem is a strictly convex
 quadratic programme,
 
 .. math::  \min_{u_1, u_2} J(u_1, u_2) = \tfrac12 u_1^T A_1 u_1 + \tfrac12 u_2^T A_2 u_2

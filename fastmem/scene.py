@@ -159,7 +159,7 @@ def _describe(value):
 
 
 class Scene:
-    """A two-membrane contact problem on a mesh (MATH.md section 1).
+    """A two-membrane contact problem on a mesh (docs/method.md §1).
 
     Parameters
     ----------
@@ -177,7 +177,7 @@ class Scene:
         piecewise linear on boundary edges.
     active_c : float
         Constant c > 0 of the active-set rule ``lambda_a > c * gap_a``
-        (:meth:`active_rule`, MATH.md 3.1); it decides only the first active set
+        (:meth:`active_rule`, docs/method.md §3.1); it decides only the first active set
         of a triple given as ``initial``.
     load_degree : int
         Quadrature degree for callable loads (default 5).
@@ -387,7 +387,7 @@ class Scene:
         ``kappa_a = A_aa / (mu1 A)_aa + A_aa / (mu2 A)_aa`` and ``B_a`` the lumped
         mass.  For constant tensions ``kappa = 1/mu1 + 1/mu2`` and ``kappa_a B_a lam_a``
         is the nodal term of lam in the gap equation ``A w = F_w + kappa B lam``
-        (MATH.md 3.3), a length like the gap; for per-triangle tensions the diagonal
+        (docs/method.md §3.3), a length like the gap; for per-triangle tensions the diagonal
         ratios are vertex averages of ``1/mu_i`` (a scale, not an equation).  Used
         for the first active set of a prolonged triple
         (:func:`fastmem.nested.warm_active_set`).
@@ -401,7 +401,7 @@ class Scene:
         return self._cache["kB"]
 
     def active_rule(self, u1, u2, lam) -> np.ndarray:
-        """Active set ``{a interior : lam_a > c (u1_a - u2_a)}`` of a triple (MATH.md 3.1).
+        """Active set ``{a interior : lam_a > c (u1_a - u2_a)}`` of a triple (docs/method.md §3.1).
 
         After a linear step ``gap = 0`` holds exactly on the active set and
         ``lam = 0`` on the inactive one, so the next set does not depend on c;

@@ -73,7 +73,7 @@ def solve(
         The problem.
     method : {"inexact", "exact-amg", "exact"}
         ``"inexact"`` (default): AMG-preconditioned CG inner solves stopped
-        by the estimators (MATH.md section 6, :mod:`fastmem.adaptive`): the
+        by the estimators (docs/method.md §6, :mod:`fastmem.adaptive`): the
         inner iteration stops when ``eta_alg <= gamma_alg * max(eta_disc,
         eta_lin)``, Newton-min when also ``eta_lin <= gamma_lin * eta_disc``.
         ``"exact-amg"``: the same loop with inner solves to relative residual

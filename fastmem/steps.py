@@ -1,7 +1,7 @@
 r"""Linear steps of Newton-min: one interface, three implementations.
 
 Given the active set of a Newton-min step and the current triple (the warm
-start), a linear step computes the next triple ``(u1, u2, lam)`` of MATH.md
+start), a linear step computes the next triple ``(u1, u2, lam)`` of docs/method.md
 3.2 (general path) or 3.3 (decoupled path) and hands every iterate it wants
 judged to the Newton layer's ``check`` (:class:`fastmem.newton.Checks`),
 which evaluates the estimators, records the history row and answers whether
@@ -13,7 +13,7 @@ class                         how the step is solved                     method
 :class:`DirectStep`           sparse direct factorisation                "exact"
 :class:`AMGStep`              AMG-preconditioned CG to round-off         "exact-amg"
 :class:`~fastmem.adaptive.    AMG-preconditioned CG stopped by the        "inexact"
-AdaptiveStep`                 estimators (MATH.md 6)
+AdaptiveStep`                 estimators (docs/method.md §6)
 ============================  =========================================  ======
 
 Interface (duck-typed)::
@@ -70,7 +70,7 @@ def new_stats() -> dict:
 
 
 class GeneralCG:
-    """CG on the reduced SPD system of one active set (general path, MATH.md 3.2)."""
+    """CG on the reduced SPD system of one active set (general path, docs/method.md §3.2)."""
 
     def __init__(self, system, options, stats):
         self.system = system
@@ -125,7 +125,7 @@ class GeneralCG:
 
 
 class DecoupledCG:
-    """CGs for the sum s (one for the level) and the gap w (one per Newton step), MATH.md 3.3.
+    """CGs for the sum s (one for the level) and the gap w (one per step), docs/method.md §3.3.
 
     The gap system is the interior Laplacian with the rows and columns of the
     active set replaced by its diagonal (``w = 0`` there), of fixed size; its

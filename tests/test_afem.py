@@ -64,7 +64,7 @@ def test_table_schema_and_monitor(lshape_run):
     for k, row in enumerate(rows):
         for c in ADAPTIVITY_COLUMNS:
             assert row[c] == table[c][k], c
-    # eta <= eta_disc + eta_lin + eta_alg on every level (MATH.md 6)
+    # eta <= eta_disc + eta_lin + eta_alg on every level (docs/method.md §6)
     parts = table["eta_disc"] + table["eta_lin"] + table["eta_alg"]
     assert (table["eta"] <= parts * (1 + 1e-12)).all()
 
@@ -107,7 +107,7 @@ def test_without_tolerance_nothing_changes():
 
 
 def test_bound_above_the_true_error_on_every_level():
-    """Manufactured solution (MATH.md 7): eta >= |||u - u_h||| on every adaptive mesh."""
+    """Manufactured solution (docs/method.md §7): eta >= |||u - u_h||| on every adaptive mesh."""
     ms = fm.Manufactured()
     scene = ms.scene(fm.Mesh.square(4))
     full = fm.solve(scene, tol=0.05)

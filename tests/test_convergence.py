@@ -1,6 +1,6 @@
 """Energy-error convergence of the exact discrete solution on the manufactured family.
 
-MATH.md section 7; errors by a degree-7 quadrature per triangle.
+docs/method.md §7; errors by a degree-7 quadrature per triangle.
 """
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Bad input at the public API level: the fastmem.errors hierarchy (ARCHITECTURE.md "Errors")."""
+"""Bad input at the public API level: the fastmem.errors hierarchy."""
 
 from __future__ import annotations
 

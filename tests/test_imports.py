@@ -3,7 +3,7 @@
 The graph is read from the source (every ``import`` and ``from ... import``
 statement anywhere in a file, also inside functions), so a lazy import that
 closes a circle is found as well as a module-level one.  The dependency
-direction is one way (ARCHITECTURE.md): cli -> api modules -> kernels.
+direction is one way: cli -> api modules -> kernels.
 """
 
 import ast

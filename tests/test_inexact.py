@@ -1,4 +1,4 @@
-"""Adaptive inexact Newton-min with AMG-CG inner solves (MATH.md sections 3.4 and 6)."""
+"""Adaptive inexact Newton-min with AMG-CG inner solves (docs/method.md §3.4 and 6)."""
 
 import math
 
@@ -335,7 +335,7 @@ def test_warm_active_weight_is_the_lambda_term_of_the_gap_equation():
     act = warm_active_set(scene, (u1, np.zeros(mesh.n_vertices), lam))
     assert not act[0]
     assert act[1:].all()
-    # the rule of MATH.md 3.1 with c = 1 calls every one of them active (lam = 1 > gap)
+    # the rule of docs/method.md §3.1 with c = 1 calls every one of them active (lam = 1 > gap)
     assert scene.active_rule(u1, np.zeros(mesh.n_vertices), lam).all()
 
 

@@ -1,4 +1,4 @@
-"""Tests of fastmem.manufactured: the exact solutions of MATH.md §7 and the error routine."""
+"""Tests of fastmem.manufactured: the exact solutions of docs/method.md §7 and the error routine."""
 
 from __future__ import annotations
 

@@ -29,7 +29,7 @@ def _energy(scene, u1, u2):
 def _pgs_gap(scene, sweeps=20000, tol=1e-14):
     """Independent reference: projected Gauss-Seidel on the obstacle problem of the gap.
 
-    Constant mu: w = u1 - u2 minimises 1/2 w^T A w - r^T w over w >= 0 (MATH.md 3.3),
+    Constant mu: w = u1 - u2 minimises 1/2 w^T A w - r^T w over w >= 0 (docs/method.md §3.3),
     with A the interior Laplacian and r = F1/mu1 - F2/mu2 - A_IB g_B.
     """
     step = DecoupledStep(scene)

@@ -20,7 +20,7 @@ would otherwise win: the script's own folder, not the working directory, is
 Cases (all with ``estimate=True`` and every other option at its default):
 
 - ``default``: ``Scene(Mesh.square(64), mu=(1, 1), f=(-1, 1), g=0.1)``;
-- ``manufactured``: ``Manufactured().scene(Mesh.square(64))`` (MATH.md 7);
+- ``manufactured``: ``Manufactured().scene(Mesh.square(64))`` (docs/method.md §7);
 - ``gmsh``: the default data on the unstructured gmsh mesh of (-1, 1)^2 in
   ``gmsh_square.npz`` (about 4000 vertices, generated once by
   :func:`generate_gmsh_square`; the file, not gmsh, is the reference);

@@ -2,7 +2,7 @@
 
 Each :class:`Case` builds a scene for a mode (``"fast"``: small meshes, the
 default test run; ``"full"``: bigger meshes, ``FASTMEM_STRESS=full``), knows
-its exact solution when one exists (the manufactured family of MATH.md
+its exact solution when one exists (the manufactured family of docs/method.md
 section 7 on ``(-1, 1)^2``), and states what must hold besides the generic
 checks of :mod:`tests.stress.checks` (an :class:`Expect`).
 
@@ -44,7 +44,7 @@ class Expect:
         True: the solver must return ``converged=True``.  False: raising a
         documented :class:`fastmem.errors.ConvergenceError` (e.g. CyclingError)
         is an accepted outcome too (meshes without the M-matrix property,
-        where MATH.md section 3.1 allows Newton-min to cycle).  Returning
+        where docs/method.md §3.1 allows Newton-min to cycle).  Returning
         ``converged=False`` without an error is never accepted.
     n_active : {None, "none", "one", "all"}
         Size of the final contact set (checked for converged exact-solve results).
@@ -123,7 +123,7 @@ def mms(mesh_fn=None, path=None, **params):
 
 
 def default(mesh_fn=None, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1):
-    """Builder of a default-like scene (MATH.md section 8) with some data changed."""
+    """Builder of a default-like scene (docs/method.md §8) with some data changed."""
 
     def build(mode):
         n = _n(mode)

@@ -4,7 +4,7 @@
 whose ``problems`` list says what went wrong (empty = the case passes).  The
 tests assert that list is empty; the report prints it.
 
-What is checked (MATH.md sections 2, 3, 5, 6):
+What is checked (docs/method.md §2, 3, 5, 6):
 
 - outcome: ``converged=True``, or a documented ConvergenceError (CyclingError...)
   where the case allows it; never ``converged=False`` without an error, never
@@ -43,7 +43,7 @@ import fastmem as fm
 from . import meshes
 from .cases import VARIANTS, Case
 
-#: Quadrature degree of the error integrals (>= 6 required by MATH.md section 7).
+#: Quadrature degree of the error integrals (>= 6 required by docs/method.md §7).
 ERROR_DEGREE = 10
 #: Round-off levels accepted for exact solves.
 COMP_TOL = {"exact": 1e-9, "exact-amg": 1e-8}

@@ -2,7 +2,7 @@
 
 Every builder returns a valid :class:`fastmem.Mesh`.  Meshes of the square
 ``(-1, 1)^2`` keep their boundary vertices exactly on the boundary, so that the
-manufactured family (MATH.md section 7) applies to them.
+manufactured family (docs/method.md §7) applies to them.
 """
 
 from __future__ import annotations
@@ -219,7 +219,7 @@ def positive_offdiagonals(mesh, rel_tol=1e-12):
     """Positive off-diagonal entries of the interior block of the stiffness matrix.
 
     The interior block is the matrix of the discrete obstacle problem
-    (MATH.md section 3.3); any positive entry means it is not an M-matrix.
+    (docs/method.md §3.3); any positive entry means it is not an M-matrix.
     """
     from fastmem.assembly import assemble_stiffness
 
