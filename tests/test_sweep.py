@@ -317,8 +317,12 @@ def test_client_killed_and_restarted(tmp_path):
     try:
         deadline = time.monotonic() + WAIT
         while len(done) < 4:
-            line = lines.get(timeout=max(0.1, deadline - time.monotonic()))
-            if line.startswith("RUN") and line.split()[2] == "done":
+            try:
+                line = lines.get(timeout=max(0.1, deadline - time.monotonic()))
+            except queue.Empty:
+                raise AssertionError(f"only {done} finished in {WAIT} s") from None
+            assert not line.startswith("RUN") or line.split()[2] == "done", line
+            if line.startswith("RUN"):
                 done.append(line.split()[1])
         started = Path(gate + ".started")
         wait_until(lambda: started.exists() and len(started.read_text().split()) == 2, "gates")
