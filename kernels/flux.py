@@ -26,7 +26,15 @@ Only sigma is needed, and it is computed from an equivalent smaller problem:
   an interior patch of a structured mesh) and of the nt x nt Schur complement
   ``C M'^-1 C^T``; for an interior patch the latter has the constants in its
   kernel and the compatible data are solved with ``S + alpha 1 1^T``.
-* Both membranes share the matrices: one factorisation, two right-hand sides.
+* Weighted norm (per-triangle tensions): membrane i minimises
+  ``||mu_i^(-1/2) (tau_i^a + v)||`` over the patch, the norm that eta_F
+  measures, so M' and the flux target of triangle K carry the factor
+  ``1 / mu_i,K`` (MATH.md section 4).  Both membranes share the matrices --
+  one factorisation, two right-hand sides -- whenever their weights are
+  proportional on the patch: always for constant tensions (then the weights
+  are 1 and the arithmetic is exactly the unweighted one), and on every patch
+  inside one material.  Other patches factor M' and the Schur complement
+  once per membrane.
 
 This is exactly the same sigma as the full system (the same constraints and
 the same quadratic functional); the full 24 + 18 system of an interior patch
@@ -146,6 +154,134 @@ def _forward_row(lo, y, row, start, n):
 
 
 @jit
+def _lower_solve1(lo, b, n, c):
+    """In place ``b[:, c] <- L^-1 b[:, c]`` for the lower factor in ``lo``."""
+    for k in range(n):
+        s0 = b[k, c]
+        for m in range(k):
+            s0 -= lo[k, m] * b[m, c]
+        b[k, c] = s0 / lo[k, k]
+
+
+@jit
+def _upper_solve1(lo, b, n, c):
+    """In place ``b[:, c] <- L^-T b[:, c]`` for the lower factor in ``lo``."""
+    for k in range(n - 1, -1, -1):
+        s0 = b[k, c]
+        for m in range(k + 1, n):
+            s0 -= lo[m, k] * b[m, c]
+        b[k, c] = s0 / lo[k, k]
+
+
+@jit
+def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, c1):
+    """Solve ``M' s + C^T m = f``, ``C s = c`` in place for the columns c0..c1-1 (1 or 2).
+
+    On entry ``mred`` holds the lower triangle of M', ``fred[:, c]`` the
+    right-hand sides f, ``cmat`` the rows of C (row p zero before
+    ``cstart[p]``), ``crhs[:, c]`` the data c.  On exit ``fred[:, c]`` holds
+    s; ``mred``, ``cmat``, ``smat`` and ``crhs`` are overwritten (Cholesky
+    factor of M', ``(L^-1 C^T)^T``, factor of the Schur complement, multipliers).
+    With two columns both right-hand sides share the factorisations.
+    """
+    two = c1 - c0 == 2
+    _cholesky(mred, n_e)
+    if two:
+        _lower_solve2(mred, fred, n_e)  # t = L^-1 f
+    else:
+        _lower_solve1(mred, fred, n_e, c0)
+    for p in range(nt):
+        _forward_row(mred, cmat, p, cstart[p], n_e)  # rows of Y^T = (L^-1 C^T)^T
+    for p1 in range(nt):
+        s1 = cstart[p1]
+        for p2 in range(p1 + 1):
+            s = 0.0
+            for k in range(max(s1, cstart[p2]), n_e):
+                s += cmat[p1, k] * cmat[p2, k]
+            smat[p1, p2] = s
+        if two:
+            b0 = 0.0
+            b1 = 0.0
+            for k in range(s1, n_e):
+                b0 += cmat[p1, k] * fred[k, 0]
+                b1 += cmat[p1, k] * fred[k, 1]
+            crhs[p1, 0] = b0 - crhs[p1, 0]
+            crhs[p1, 1] = b1 - crhs[p1, 1]
+        else:
+            b0 = 0.0
+            for k in range(s1, n_e):
+                b0 += cmat[p1, k] * fred[k, c0]
+            crhs[p1, c0] = b0 - crhs[p1, c0]
+    if interior:
+        # zero normal flux on the whole patch boundary: the flux balance rows
+        # sum to zero, S has the constants in its kernel and the data are
+        # compatible; any multiplier of the consistent system will do
+        tr = 0.0
+        for p in range(nt):
+            tr += smat[p, p]
+        alpha = tr / nt
+        for p1 in range(nt):
+            for p2 in range(p1 + 1):
+                smat[p1, p2] += alpha
+    _cholesky(smat, nt)
+    if two:
+        _lower_solve2(smat, crhs, nt)  # mu = S^-1 (Y^T t - c)
+        _upper_solve2(smat, crhs, nt)
+    else:
+        _lower_solve1(smat, crhs, nt, c0)
+        _upper_solve1(smat, crhs, nt, c0)
+    # --- sigma_e = L^-T (t - Y mu)
+    for p in range(nt):
+        if two:
+            r0 = crhs[p, 0]
+            r1 = crhs[p, 1]
+            for k in range(cstart[p], n_e):
+                fred[k, 0] -= cmat[p, k] * r0
+                fred[k, 1] -= cmat[p, k] * r1
+        else:
+            r0 = crhs[p, c0]
+            for k in range(cstart[p], n_e):
+                fred[k, c0] -= cmat[p, k] * r0
+    if two:
+        _upper_solve2(mred, fred, n_e)
+    else:
+        _upper_solve1(mred, fred, n_e, c0)
+
+
+@jit
+def _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, corig, c):
+    """One step of iterative refinement of the flux balance ``C s = c`` for column c.
+
+    After :func:`_reduced_solve` (whose factors it reuses), with ``crow`` the
+    original entries of C (row p at the dofs ``emap[p]``) and ``corig`` the
+    original data:  ``d = c - C s``, ``s += M'^-1 C^T S^-1 d`` (the KKT
+    correction of the residual d).  With weights that differ by a factor
+    1e6 on one patch M' is that much worse conditioned and the flux balance
+    lost as many digits (1e-10 relative instead of 1e-15); one step restores
+    round-off.
+    """
+    for p in range(nt):
+        d = corig[p, c]
+        for r in range(6):
+            pr = emap[p, r]
+            if pr >= 0:
+                d -= crow[p, r] * fred[pr, c]
+        crhs[p, c] = d
+    _lower_solve1(smat, crhs, nt, c)  # dm = S^-1 d (S as factored, with alpha 1 1^T)
+    _upper_solve1(smat, crhs, nt, c)
+    # ds = L^-T Y dm with Y = L^-1 C^T (rows of Y^T in cmat); column 2 of fred is scratch
+    for k in range(n_e):
+        fred[k, 2] = 0.0
+    for p in range(nt):
+        dm = crhs[p, c]
+        for k in range(cstart[p], n_e):
+            fred[k, 2] += cmat[p, k] * dm
+    _upper_solve1(mred, fred, n_e, 2)
+    for k in range(n_e):
+        fred[k, c] += fred[k, 2]
+
+
+@jit
 def _patch_solve(
     a,
     vertices,
@@ -179,6 +315,11 @@ def _patch_solve(
     cmat,
     crhs,
     smat,
+    mred2,
+    cmat2,
+    smat2,
+    crow,
+    corig,
     mass,
     div,
     tau,
@@ -191,10 +332,34 @@ def _patch_solve(
     problem on the patch edge dofs with one flux-balance constraint per
     triangle.  The remaining arguments are per-thread work arrays (sized for
     the largest patch; no allocation and no array views per patch).
+
+    Weights (MATH.md section 4, per-triangle tensions): membrane i minimises
+    ``sum_K w_iK ||tau + v||_K^2`` with ``w_iK = mu_i,K0 / mu_i,K`` (K0 the
+    first patch triangle; a constant factor does not change the minimiser),
+    so M' and the right-hand side of triangle K are scaled by w_iK.  When
+    ``w_1K = w_2K`` on the whole patch (always for constant tensions, where
+    both are 1 and the arithmetic is the unweighted one) the membranes share
+    M', its factor and the Schur complement; otherwise membrane 2 gets its own
+    (``mred2``, ``cmat2``, ``smat2``).
     """
     pstart = patch_ptr[a]
     nt = patch_ptr[a + 1] - pstart
     interior = not boundary[a]
+    # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
+    shared = True
+    uniform = True  # all weights 1: the unweighted problem
+    t0 = patch_triangles[pstart]
+    mu1_0 = mu1[0] if mu1.shape[0] == 1 else mu1[t0]
+    mu2_0 = mu2[0] if mu2.shape[0] == 1 else mu2[t0]
+    if mu1.shape[0] != 1 or mu2.shape[0] != 1:
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            w1 = mu1_0 / (mu1[0] if mu1.shape[0] == 1 else mu1[t])
+            w2 = mu2_0 / (mu2[0] if mu2.shape[0] == 1 else mu2[t])
+            if w1 != 1.0 or w2 != 1.0:
+                uniform = False
+            if abs(w1 - w2) > 1e-13 * max(w1, w2):
+                shared = False
     # --- patch edges with dofs
     ne = 0
     for p in range(nt):
@@ -224,6 +389,10 @@ def _patch_solve(
         fred[r, 1] = 0.0
         for s in range(r + 1):
             mred[r, s] = 0.0
+    if not shared:
+        for r in range(n_e):
+            for s in range(r + 1):
+                mred2[r, s] = 0.0
     for p in range(nt):
         for r in range(n_e):
             cmat[p, r] = 0.0
@@ -261,6 +430,9 @@ def _patch_solve(
             gay = (x1 - x0) * inv2a
         m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
         m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
+        # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
+        w1 = mu1_0 / m1
+        w2 = w1 if shared else mu2_0 / m2
         # data (g, lambda_j)
         dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
         dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
@@ -310,68 +482,51 @@ def _patch_solve(
             k0 = kmat[p, 0, r]
             k1 = kmat[p, 1, r]
             cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
+            crow[p, r] = cmat[p, pr]
             # A = M_eb - K^T M_bb (row r)
             a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
             a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
             te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
             te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
-            fred[pr, 0] += te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
-            fred[pr, 1] += te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
+            fe1 = te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
+            fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
+            fred[pr, 0] += w1 * fe1
+            fred[pr, 1] += w2 * fe2
             # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K = M_ee - A K - K^T M_be
             for s in range(6):
                 ps = emap[p, s]
                 if ps >= 0 and ps <= pr:
-                    mred[pr, ps] += (
+                    mm = (
                         mass[r, s]
                         - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
                         - (mass[s, 6] * k0 + mass[s, 7] * k1)
                     )
+                    mred[pr, ps] += w1 * mm
+                    if not shared:
+                        mred2[pr, ps] += w2 * mm
         cstart[p] = st
         for c in range(2):
             crhs[p, c] = (
                 gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
             )
     # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
-    _cholesky(mred, n_e)
-    _lower_solve2(mred, fred, n_e)  # t = L^-1 f
-    for p in range(nt):
-        _forward_row(mred, cmat, p, cstart[p], n_e)  # rows of Y^T = (L^-1 C^T)^T
-    for p1 in range(nt):
-        s1 = cstart[p1]
-        for p2 in range(p1 + 1):
-            s = 0.0
-            for k in range(max(s1, cstart[p2]), n_e):
-                s += cmat[p1, k] * cmat[p2, k]
-            smat[p1, p2] = s
-        b0 = 0.0
-        b1 = 0.0
-        for k in range(s1, n_e):
-            b0 += cmat[p1, k] * fred[k, 0]
-            b1 += cmat[p1, k] * fred[k, 1]
-        crhs[p1, 0] = b0 - crhs[p1, 0]
-        crhs[p1, 1] = b1 - crhs[p1, 1]
-    if interior:
-        # zero normal flux on the whole patch boundary: the flux balance rows
-        # sum to zero, S has the constants in its kernel and the data are
-        # compatible; any multiplier of the consistent system will do
-        tr = 0.0
+    if not uniform:
         for p in range(nt):
-            tr += smat[p, p]
-        alpha = tr / nt
-        for p1 in range(nt):
-            for p2 in range(p1 + 1):
-                smat[p1, p2] += alpha
-    _cholesky(smat, nt)
-    _lower_solve2(smat, crhs, nt)  # mu = S^-1 (Y^T t - c)
-    _upper_solve2(smat, crhs, nt)
-    # --- sigma_e = L^-T (t - Y mu), bubbles = beta - K sigma_e
-    for p in range(nt):
-        r0 = crhs[p, 0]
-        r1 = crhs[p, 1]
-        for k in range(cstart[p], n_e):
-            fred[k, 0] -= cmat[p, k] * r0
-            fred[k, 1] -= cmat[p, k] * r1
-    _upper_solve2(mred, fred, n_e)
+            corig[p, 0] = crhs[p, 0]
+            corig[p, 1] = crhs[p, 1]
+    if shared:
+        _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, 0, 2)
+        if not uniform:
+            for c in range(2):
+                _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, corig, c)
+    else:
+        for p in range(nt):
+            for r in range(cstart[p], n_e):
+                cmat2[p, r] = cmat[p, r]
+        _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, 0, 1)
+        _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, corig, 0)
+        _reduced_solve(mred2, fred, cmat2, crhs, smat2, cstart, n_e, nt, interior, 1, 2)
+        _refine_balance(mred2, fred, cmat2, crhs, smat2, cstart, n_e, nt, crow, emap, corig, 1)
     for p in range(nt):
         t = patch_triangles[pstart + p]
         for c in range(2):
@@ -449,6 +604,7 @@ def reconstruct_colored(
     """
     m = triangles.shape[0]
     out = np.zeros((2, m, 8))
+    per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
     nt = max_nt
     ne = 6 * max_nt  # bound on the edge dofs (3 edges per triangle)
     for c in range(color_ptr.shape[0] - 1):
@@ -463,10 +619,18 @@ def reconstruct_colored(
             kmat = np.empty((nt, 2, 6))
             beta = np.empty((nt, 2, 2))
             mred = np.empty((ne, ne))
-            fred = np.empty((ne, 2))
+            fred = np.empty((ne, 3))  # two right-hand sides and a scratch column
             cmat = np.empty((nt, ne))
             crhs = np.empty((nt, 2))
             smat = np.empty((nt, nt))
+            # second factorisation, only for patches whose weights are not proportional
+            n2e = ne if per_triangle else 1
+            n2t = nt if per_triangle else 1
+            mred2 = np.empty((n2e, n2e))
+            cmat2 = np.empty((n2t, n2e))
+            smat2 = np.empty((n2t, n2t))
+            crow = np.empty((nt, 6))  # original rows of C, for the refinement step
+            corig = np.empty((nt, 2))
             mass = np.empty((8, 8))
             div = np.empty((3, 8))
             tau = np.empty((3, 2, 8))
@@ -507,6 +671,11 @@ def reconstruct_colored(
                     cmat,
                     crhs,
                     smat,
+                    mred2,
+                    cmat2,
+                    smat2,
+                    crow,
+                    corig,
                     mass,
                     div,
                     tau,

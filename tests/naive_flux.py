@@ -15,12 +15,15 @@ zero-flux part of the patch boundary are explicit linear constraints (sigma.n is
 linear along an edge: its values at the two endpoints are equated / zeroed);
 their null space (scipy.linalg.null_space) parametrises V^a.  Then
 
-    min ||tau + sigma||^2_{omega_a}  s.t.  (div sigma, q) = (g, q)  for all q in Q^a
+    min ||mu^(-1/2) (tau + sigma)||^2_{omega_a}  s.t.  (div sigma, q) = (g, q)  for all q in Q^a
 
-is solved with a dense KKT system.  Integrals use a collapsed (Duffy) Gauss
-rule written here, exact to degree 8, except integrals of a callable load, which
-use the package's load rule (``fastmem.quadrature.triangle_rule(scene.load_degree)``)
-so that the discrete compatibility (g, 1) = 0 of interior patches holds exactly
+(the mu-weighted norm of MATH.md section 4: ``(sigma, v)`` and ``(tau, v)`` carry
+the factor 1 / mu_K triangle by triangle; ``weighted=False`` gives the unweighted
+problem of earlier versions) is solved with a dense KKT system.  Integrals use a
+collapsed (Duffy) Gauss rule written here, exact to degree 8, except integrals
+of a callable load, which use the package's load rule
+(``fastmem.quadrature.triangle_rule(scene.load_degree)``) so that
+the discrete compatibility (g, 1) = 0 of interior patches holds exactly
 as for the load vector F.  Edge topology and P1 gradients are recomputed here
 from ``mesh.vertices`` / ``mesh.triangles`` (not read from the package's mesh
 topology).
@@ -119,14 +122,15 @@ def _mu_on(mu, k):
 
 
 # --------------------------------------------------------------------- patch problem
-def patch_problem(scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None):
+def patch_problem(scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None, weighted=True):
     """Solve the RT1 patch problem of vertex ``a`` for one membrane.
 
     Parameters
     ----------
     u : nodal values of u_ih; lam_a : the signed contact term (+lam_a for membrane 1,
     -lam_a for membrane 2, 0 at boundary vertices); r_a : R_i,a (0 at boundary
-    vertices); f, mu : the membrane's load and tension.
+    vertices); f, mu : the membrane's load and tension; weighted : minimise
+    ``||mu^(-1/2) (tau + sigma)||`` (default) or ``||tau + sigma||``.
 
     Returns
     -------
@@ -165,9 +169,10 @@ def patch_problem(scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None):
         psi = QUAD_BARY[:, la]
         w = area * QUAD_W
         sl = slice(8 * j, 8 * j + 8)
-        mass[sl, sl] = np.einsum("p,pic,pjc->ij", w, phi, phi)
+        wk = 1.0 / mu_k if weighted else 1.0  # weight of the patch norm on K
+        mass[sl, sl] = wk * np.einsum("p,pic,pjc->ij", w, phi, phi)
         tau = mu_k * psi[:, None] * grad_u[None, :]  # (P, 2)
-        lin[sl] = np.einsum("p,pic,pc->i", w, phi, tau)
+        lin[sl] = wk * np.einsum("p,pic,pc->i", w, phi, tau)
         ql = slice(3 * j, 3 * j + 3)
         div[ql, sl] = np.einsum("p,pl,pi->li", w, QUAD_BARY, dphi)
         # g = psi_a f - mu grad psi_a . grad u + (lam_a - R_a / B_a) psi_a
@@ -233,8 +238,10 @@ def _boundary_vertices(owners, n_vertices):
     return bnd
 
 
-def naive_reconstruct(scene, u1, u2, lam, r1=None, r2=None, return_patches=False):
+def naive_reconstruct(scene, u1, u2, lam, r1=None, r2=None, return_patches=False, weighted=True):
     """Equilibrated fluxes sigma_1h, sigma_2h in the canonical representation.
+
+    ``weighted``: patch problems in the mu-weighted norm (default) or unweighted.
 
     Returns ``(coef1, coef2)``, each of shape (M, 8); with ``return_patches=True``
     also a list ``patches`` of ``(a, i, tris, coef_a, zero_edges)`` (i = 0, 1).
@@ -254,7 +261,9 @@ def naive_reconstruct(scene, u1, u2, lam, r1=None, r2=None, return_patches=False
         for i, (u, sgn, r, f, mu) in enumerate(data):
             lam_a = 0.0 if boundary[a] else sgn * lam[a]
             r_a = 0.0 if boundary[a] else r[a]
-            tris, coef, zero_edges = patch_problem(scene, a, u, lam_a, r_a, f, mu, owners, boundary)
+            tris, coef, zero_edges = patch_problem(
+                scene, a, u, lam_a, r_a, f, mu, owners, boundary, weighted
+            )
             out[i][tris] += coef
             if return_patches:
                 patches.append((a, i, tris, coef, zero_edges))
