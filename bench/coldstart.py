@@ -1,0 +1,123 @@
+"""Cold start: the first ``fastmem run`` with an empty Numba cache, the second one, and
+the compile time of every kernel.
+
+A fresh install has no compiled kernels; Numba compiles each one on its first
+call and caches it on disk (``cache=True``).  This benchmark points Numba at
+an empty cache folder (``NUMBA_CACHE_DIR``) and measures, each in a fresh
+process:
+
+* ``cold``: ``fastmem run --no-save`` (the README's first command without the
+  install) with the empty cache: wall time of the whole process;
+* ``warm``: the same command again, with the cache the first one filled;
+* ``import``: ``python -c "import fastmem"`` (the floor of any run);
+* per kernel: the compile time of every kernel specialisation compiled by the
+  cold run (Numba's ``numba:compile`` events; times of nested compilations are
+  included in their caller's and listed as well).
+
+    python -m bench.coldstart [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+from bench._common import emit_worker_result, finish, parse, parser, progress, summary
+
+COMMAND = ["-m", "fastmem", "run", "--no-save"]
+
+
+def _timed(args, env) -> tuple[float, str]:
+    t0 = time.perf_counter()
+    res = subprocess.run(
+        [sys.executable, *args], env=env, stdout=subprocess.PIPE, text=True, check=False
+    )
+    seconds = time.perf_counter() - t0
+    if res.returncode not in (0, 1):
+        raise RuntimeError(f"{' '.join(args)} failed with exit code {res.returncode}")
+    return seconds, res.stdout
+
+
+def compile_worker() -> dict:
+    """Run the default scene with Numba's compile events recorded (empty cache expected)."""
+    from numba.core import event
+
+    import fastmem as fm
+
+    with event.install_recorder("numba:compile") as rec:
+        t0 = time.perf_counter()
+        fm.solve(fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+        seconds = time.perf_counter() - t0
+    starts, rows = {}, []
+    for ts, ev in rec.buffer:
+        d = ev.data["dispatcher"]
+        key = (id(d), str(ev.data["args"]))
+        if ev.is_start:
+            starts[key] = ts
+        elif key in starts:
+            name = f"{d.py_func.__module__}.{d.py_func.__name__}"
+            rows.append({"kernel": name, "args": str(ev.data["args"]), "seconds": ts - starts[key]})
+    rows.sort(key=lambda r: -r["seconds"])
+    return {"solve_seconds": seconds, "compiles": rows}
+
+
+def main(argv=None):
+    p = parser(__doc__, repeat=3)
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = parse(p, argv)
+    if args.worker:
+        emit_worker_result(compile_worker())
+        return 0
+    repeat = 1 if args.quick else args.repeat
+    cold, warm, imports, outputs = [], [], [], []
+    for k in range(repeat):
+        with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
+            env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+            t_cold, out = _timed(COMMAND, env)
+            t_warm, _ = _timed(COMMAND, env)
+            t_import, _ = _timed(["-c", "import fastmem"], env)
+        cold.append(t_cold)
+        warm.append(t_warm)
+        imports.append(t_import)
+        outputs.append(out)
+        progress(f"coldstart {k + 1}/{repeat}: cold {t_cold:.1f} s, warm {t_warm:.2f} s")
+    with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        res = subprocess.run(
+            [sys.executable, "-m", "bench.coldstart", "--worker"],
+            env=env,
+            stdout=subprocess.PIPE,
+            text=True,
+            check=True,
+        )
+        compiles = json.loads(res.stdout.strip().splitlines()[-1])
+    top = {}
+    for row in compiles["compiles"]:
+        top[row["kernel"]] = top.get(row["kernel"], 0.0) + row["seconds"]
+    for name, sec in sorted(top.items(), key=lambda kv: -kv[1])[:8]:
+        progress(f"  {sec:6.2f} s  {name} (inclusive, all specialisations)")
+    payload = {
+        "description": __doc__.split("\n\n")[0],
+        "command": "python " + " ".join(COMMAND),
+        "cold_seconds": cold,
+        "warm_seconds": warm,
+        "import_seconds": imports,
+        "cold": summary(cold),
+        "warm": summary(warm),
+        "import": summary(imports),
+        "first_output": outputs[0],
+        "compile_events": compiles["compiles"],
+        "compile_solve_seconds": compiles["solve_seconds"],
+        "kernel_seconds_inclusive": dict(sorted(top.items(), key=lambda kv: -kv[1])),
+    }
+    finish("coldstart", payload, args.quick)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
