@@ -1,4 +1,4 @@
-"""Command line: ``fastmem run``, ``info FILE.h5``, ``export FILE.h5 OUT``, ``plot FILE.h5``.
+"""Command line: ``fastmem run``, ``info``, ``export``, ``plot`` and ``sweep`` (docs/cli.md).
 
 ``fastmem run`` with no option solves the default scene (docs/method.md §8):
 the square (-1, 1)^2, mu1 = mu2 = 1, f1 = -1, f2 = 1, g = 0.1, on a structured
@@ -161,8 +161,10 @@ def _build_parser() -> argparse.ArgumentParser:
     )
 
     from .plot import add_parser as _add_plot
+    from .sweep_cli import add_sweep_parser, extend_plot_parser
 
-    _add_plot(sub)
+    extend_plot_parser(_add_plot(sub))  # plot: an archive, or a sweep study folder
+    add_sweep_parser(sub)
     return p
 
 
