@@ -252,6 +252,24 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     \mu_{\min}^{-1/2} \|\mu^{1/2} \nabla e\|`, so using
     :math:`\min_K \mu_{i,K}` keeps the bound guaranteed (but may make it
     pessimistic for strongly varying tensions).
+
+    Review for per-triangle tensions (issue 16, docs/heterogeneous.md).  The
+    sharp constant is :math:`\Lambda^{-1/2}` with :math:`\Lambda` the
+    smallest eigenvalue of :math:`-\nabla\cdot(\mu\nabla)` on
+    :math:`H^1_0(\Omega)`; :math:`\Lambda \ge \mu_{\min} \pi^2 (L_x^{-2} +
+    L_y^{-2})` (Rayleigh quotients, Ω inside its bounding box) is the best
+    bound that holds for every piecewise-constant μ with these extremes: a
+    μ equal to :math:`\mu_{\min}` except on a set of small measure has
+    :math:`\Lambda` as close to it as wanted.  A larger guaranteed
+    :math:`\Lambda` for a given μ needs a guaranteed eigenvalue lower bound
+    (Lehmann-Goerisch, nonconforming bounds), not attempted: these terms vanish
+    at feasible iterates with exact solves (:math:`\rho = \lambda^- = 0`) and
+    enter only through :math:`\eta_{alg}, \eta_{lin}` otherwise, which the
+    adaptive solver keeps below :math:`\gamma\,\eta_{disc}`.  The constant is
+    unchanged: :math:`\min_K \mu_{i,K}`.  With the redistributed contact
+    load of :func:`fastmem.flux.contact_redistribution` the residuals
+    :math:`\rho_i`, :math:`\lambda^-` are the same functions (proof there), so
+    these terms are unchanged too.
     """
     mesh = scene.mesh
     _nodal(mesh, u1, "u1")
@@ -366,7 +384,25 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     :math:`(a + \sqrt{a^2 + 4c})/2` bounds :math:`|||e|||`.
 
     For per-triangle tensions the global terms use :math:`\min_K \mu_{i,K}`
-    (see :func:`global_terms`).
+    (see :func:`global_terms`) and the oscillation :math:`\mu_{i,K}^{-1/2}` of
+    its own triangle: the Poincaré step is local,
+    :math:`(f - \Pi_K f, e)_K \le \frac{h_K}{\pi}\|f - \Pi_K f\|_K
+    \|\nabla e\|_K = \frac{h_K}{\pi}\mu_{i,K}^{-1/2}\|f - \Pi_K f\|_K
+    \|\mu_i^{1/2}\nabla e\|_K`, and the sum over K is then bounded by
+    Cauchy-Schwarz together with the flux terms (issue 16 review: correct as
+    implemented, nothing sharper without changing the term's form).
+
+    Contact load (issue 16).  The proof uses :math:`\hat\lambda` only as some
+    :math:`\ell \ge 0` with :math:`\nabla\cdot\sigma_{1h} = \Pi f_1 + \ell -
+    \lambda^- - \rho_1` and :math:`\nabla\cdot\sigma_{2h} = \Pi f_2 - \ell +
+    \lambda^- - \rho_2`: then :math:`r_1, r_2` are as above and the contact
+    part gives :math:`(\lambda - \ell, e_1 - e_2) \le (\ell, (u_{1h} -
+    u_{2h})^+)`.  :func:`fastmem.flux.reconstruct` may replace
+    :math:`\hat\lambda` by a redistributed :math:`\ell \ge 0` (P1 on each
+    triangle) that differs from it only on triangles where
+    :math:`(u_{1h} - u_{2h})^+ = 0`, so c, the global terms and everything
+    here are unchanged; only :math:`\eta_F` changes
+    (:func:`fastmem.flux.contact_redistribution`).
     """
     osc1 = _map(local["eta_osc1"], "eta_osc1", None)
     m = osc1.shape[0]

@@ -38,7 +38,7 @@ from .kernels import flux as _kf
 from .linear import residuals
 from .loaddata import integrals
 
-__all__ = ["Fluxes", "reconstruct"]
+__all__ = ["Fluxes", "contact_load", "contact_redistribution", "reconstruct"]
 
 logger = logging.getLogger(__name__)
 
@@ -111,7 +111,150 @@ def _mu_array(mu):
     return np.ascontiguousarray(np.atleast_1d(np.asarray(mu, dtype=np.float64)))
 
 
-def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
+def _closed_contact_vertices(mesh, gap) -> np.ndarray:
+    """Interior vertices whose whole patch has ``gap <= 0`` at every vertex (bool (N,)).
+
+    On such a patch :math:`(u_{1h} - u_{2h})^+ = 0`, so redistributing the
+    contact load there leaves the complementarity term unchanged.
+    """
+    closed_tri = (gap[mesh.triangles] <= 0.0).all(axis=1)
+    open_count = np.bincount(mesh.triangles[~closed_tri].ravel(), minlength=mesh.n_vertices)
+    return (open_count == 0) & ~mesh.boundary_vertex_mask
+
+
+def contact_redistribution(scene, u1, u2, lam):
+    r"""Vertices whose contact load is redistributed, and its mass corrections.
+
+    Parameters
+    ----------
+    scene : Scene
+    u1, u2 : ndarray of shape (N,)
+    lam : ndarray of shape (N,)
+        Nodal multiplier, zero on the boundary.
+
+    Returns
+    -------
+    flags : ndarray of bool, shape (N,), or None when no vertex qualifies
+    gamma : ndarray of shape (N,), or None
+
+    Notes
+    -----
+    Only the mass :math:`B_a \lambda_a` of the contact load :math:`\chi^a` of
+    patch a is fixed (by the compatibility of both membranes' patch problems);
+    its shape is free.  A vertex a is redistributed when it is interior, its
+    patch is in closed contact (gap ``<= 0`` at every patch vertex) and
+    :math:`\mu_{1,K} \ne \mu_{2,K}` on some patch triangle; then, on each
+    patch triangle K, :math:`\chi^a|_K = p_{a,K} + \gamma_a m_K \psi_a` with
+    :math:`p_{a,K}` the L2 projection onto P1(K) of
+
+    .. math::
+
+        \psi_a \chi^*, \qquad \chi^* = \frac{\mu_{1,K} f_2 - \mu_{2,K} f_1}
+                                      {\mu_{1,K} + \mu_{2,K}}
+
+    with negative vertex values cut to zero, :math:`m_K = \mu_{1,K}\mu_{2,K} /
+    (\mu_{1,K} + \mu_{2,K})` and :math:`\gamma_a` restoring the mass (a mass
+    defect :math:`\delta` costs about :math:`(\mu_1^{-1} + \mu_2^{-1})\delta^2` in
+    the flux terms, so it goes where :math:`m_K` is large: across a material
+    interface, to the side where both membranes are stiff).  :math:`\chi^*` is the
+    pointwise minimiser of :math:`\mu_1^{-1}|g_1 +
+    \chi|^2 + \mu_2^{-1}|g_2 - \chi|^2` (the contact pressure of two glued
+    membranes): membrane i receives the fraction :math:`\mu_i / (\mu_1 +
+    \mu_2)` of the glued patch data, so a floppy membrane no longer carries,
+    with the weight :math:`\mu_{floppy}^{-1/2}` of its flux term, the mismatch
+    between the lumped :math:`\lambda_a \psi_a` and the pressure the stiff
+    membrane exerts.  The vertex keeps :math:`\lambda_a \psi_a` unless
+    :math:`p_{a,K}(x_a) + \gamma_a m_K \ge 0` on every patch triangle: every piece
+    is then a non-negative P1 function, so the contact load of the bound,
+    :math:`\ell = \sum_{a\ \mathrm{redistributed}} (\chi^a + \lambda^-_a \psi_a)
+    + \sum_{\mathrm{others}} \max(\lambda_a, 0) \psi_a`, is P1 and
+    non-negative on every triangle (checked once more on the vertex values).
+    Equal tensions (:math:`\mu_1 = \mu_2` on the whole patch) are left alone:
+    the gain measured there was 1e-6 of eta (manufactured family, mu = (1, 1)),
+    and equal-tension results stay those of MATH.md section 4 as written.
+
+    Why the bound holds (docs/heterogeneous.md): with :math:`\chi = \sum_a
+    \chi^a`, :math:`\nabla\cdot\sigma_{1h} = \Pi f_1 + \chi - \rho_1` and
+    :math:`\nabla\cdot\sigma_{2h} = \Pi f_2 - \chi - \rho_2`; the proof of
+    MATH.md section 5 runs with :math:`\ell = \chi + \lambda^- \ge 0` in place
+    of :math:`\hat\lambda`: :math:`r_1 = f_1 + \ell - \nabla\cdot\sigma_{1h} =
+    (f_1 - \Pi f_1) + \rho_1 + \lambda^-` and :math:`r_2 = (f_2 - \Pi f_2) +
+    \rho_2 - \lambda^-` are unchanged (:math:`\ell` is P1 per triangle), the
+    contact part gives :math:`(\lambda - \ell, e_1 - e_2) \le (\ell, (u_{1h} -
+    u_{2h})^+)`, and :math:`\ell` differs from :math:`\hat\lambda` only on
+    triangles of closed patches, where :math:`(u_{1h} - u_{2h})^+ = 0`: c is
+    unchanged too.  Only :math:`\eta_F` changes.
+    """
+    mesh = scene.mesh
+    tri = mesh.triangles
+    area = mesh.areas
+    mu1 = np.broadcast_to(np.asarray(scene.mu1, dtype=np.float64), area.shape)
+    mu2 = np.broadcast_to(np.asarray(scene.mu2, dtype=np.float64), area.shape)
+    unequal = np.bincount(tri[mu1 != mu2].ravel(), minlength=mesh.n_vertices) > 0
+    cand = _closed_contact_vertices(mesh, u1 - u2) & unequal
+    if not cand.any():
+        return None, None
+    mij = area[:, None, None] / 12.0 * (1.0 + np.eye(3))[None]  # int lambda_i lambda_j
+    mom = []
+    for i in (1, 2):
+        m = load_moments(scene, i)
+        mom.append(float(scene.f1 if i == 1 else scene.f2) * mij if m is None else m)
+    # (psi_a chi*, lambda_j)_K for a = triangles[K, i]: (M, 3, 3)
+    glued = (mu1[:, None, None] * mom[1] - mu2[:, None, None] * mom[0]) / (mu1 + mu2)[:, None, None]
+    # vertex values of its L2 projection onto P1(K), M_K^-1 = (12 / |K|) (I - 1 1^T / 4),
+    # negative values cut to zero (the kernel does the same)
+    pieces = 12.0 / area[:, None, None] * (glued - 0.25 * glued.sum(axis=2, keepdims=True))
+    pieces = np.maximum(pieces, 0.0)
+    bmass = mesh.lumped_mass
+    n = len(bmass)
+    piece_mass = pieces.sum(axis=2) * (area[:, None] / 3.0)  # (M, 3)
+    total = np.bincount(tri.ravel(), weights=piece_mass.ravel(), minlength=n)
+    # the mass correction gamma_a m_K psi_a goes where it costs least: the defect
+    # delta costs about (1/mu_1 + 1/mu_2) delta^2 in the flux terms, so m_K
+    # = mu_1 mu_2 / (mu_1 + mu_2) (all on the stiff side of an interface)
+    m_k = mu1 * mu2 / (mu1 + mu2)
+    weight = np.bincount(tri.ravel(), weights=np.repeat(m_k * area / 3.0, 3), minlength=n)
+    gamma = (bmass * lam - total) / weight
+    # the piece of a on K is >= 0 iff its value at a is
+    own = pieces[:, [0, 1, 2], [0, 1, 2]] + gamma[tri] * m_k[:, None]  # (M, 3)
+    negative = np.bincount(tri[own < 0.0], minlength=len(bmass)) > 0
+    flags = cand & ~negative
+    if not flags.any():
+        return None, None
+    # every piece is >= 0, so ell >= 0; checked anyway (vertex values per triangle)
+    lam_hat = np.maximum(lam, 0.0)
+    eye = np.eye(3)[None]
+    redist = pieces + (gamma[tri] * m_k[:, None] + (lam_hat - lam)[tri])[:, :, None] * eye
+    plain = lam_hat[tri][:, :, None] * eye
+    ell = np.where(flags[tri][:, :, None], redist, plain).sum(axis=1)
+    if (ell < 0.0).any():  # pragma: no cover - excluded by construction
+        raise AssertionError("redistributed contact load is negative")
+    return flags, gamma
+
+
+def contact_load(scene, fluxes, rho1, lam_minus) -> np.ndarray:
+    """Nodal values per triangle, shape (M, 3), of ``ell = div sigma_1h - Pi f_1 + rho_1 + lam^-``.
+
+    ``ell`` is the contact load the flux of membrane 1 equilibrates plus the
+    negative part of lam_h; the bound needs ``ell >= 0`` (it is ``max(lam_h, 0)``
+    without redistribution).  P1 on each triangle, so its vertex values decide.
+    """
+    mesh = scene.mesh
+    tri = mesh.triangles
+    m = mesh.n_triangles
+    tt = np.repeat(np.arange(m), 3)
+    pts = mesh.vertices[tri.ravel()]
+    div = fluxes.divergence(0, tt, pts[:, 0], pts[:, 1]).reshape(m, 3)
+    mom = load_moments(scene, 1)
+    if mom is None:
+        pif = np.full((m, 3), float(scene.f1))
+    else:
+        b = mom.sum(axis=1)  # int_K f lambda_j
+        pif = 12.0 / mesh.areas[:, None] * (b - 0.25 * b.sum(axis=1, keepdims=True))
+    return div - pif + rho1[tri] + lam_minus[tri]
+
+
+def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Fluxes:
     """Equilibrated RT1 fluxes ``sigma_1h``, ``sigma_2h`` of any triple (MATH.md section 4).
 
     Parameters
@@ -122,6 +265,10 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
     r1, r2 : ndarray of shape (N,), optional
         Algebraic residuals of the triple; computed by
         :func:`fastmem.linear.residuals` when omitted.
+    redistribute : bool
+        Redistribute the contact load between the membranes on patches in
+        closed contact (default; see Notes).  ``False``: the contact load of
+        patch a is ``lam_a psi_a`` everywhere (MATH.md section 4 as written).
 
     Returns
     -------
@@ -131,6 +278,13 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
     -----
     Convenience wrapper around the Numba kernel ``reconstruct_colored``
     (parallel over the vertices of each colour class).
+
+    Contact load: with ``redistribute`` (default) the contact load of patches
+    in closed contact between membranes of unequal tension is redistributed
+    (:func:`contact_redistribution`); the bound keeps its guarantee and only
+    the flux terms change.  Then ``div sigma_1h = Pi f_1 + chi - rho_1``,
+    ``div sigma_2h = Pi f_2 - chi - rho_2`` with ``chi`` P1 on each triangle and
+    ``(chi, psi_a) = B_a lam_a`` at every interior vertex.
     """
     mesh = scene.mesh
     u1, u2, lam = (np.ascontiguousarray(v, dtype=np.float64) for v in (u1, u2, lam))
@@ -149,6 +303,7 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
         consts.append(float(f) if mom is None else 0.0)
         moments.append(np.zeros((1, 3, 3)) if mom is None else mom)
     order, color_ptr = _coloring(mesh)
+    flags, gamma = contact_redistribution(scene, u1, u2, lam_i) if redistribute else (None, None)
     coef = _kf.reconstruct_colored(
         order,
         color_ptr,
@@ -172,6 +327,8 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None) -> Fluxes:
         consts[1],
         moments[0],
         moments[1],
+        np.zeros(1, dtype=np.bool_) if flags is None else flags,
+        np.zeros(1) if gamma is None else gamma,
         int(np.diff(mesh.patch_ptr).max()),
         numba.get_num_threads(),
     )

@@ -282,6 +282,26 @@ def _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, c
 
 
 @jit
+def _gradients(i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, inv2a):
+    """Gradients of u1, u2 and psi of local vertex i on one triangle (1 / (2|K|) given)."""
+    # grad u = sum_v u_v rot(edge opposite v) / (2|K|); grad psi_a likewise
+    du1x = -(u1[i0] * (y2 - y1) + u1[i1] * (y0 - y2) + u1[i2] * (y1 - y0)) * inv2a
+    du1y = (u1[i0] * (x2 - x1) + u1[i1] * (x0 - x2) + u1[i2] * (x1 - x0)) * inv2a
+    du2x = -(u2[i0] * (y2 - y1) + u2[i1] * (y0 - y2) + u2[i2] * (y1 - y0)) * inv2a
+    du2y = (u2[i0] * (x2 - x1) + u2[i1] * (x0 - x2) + u2[i2] * (x1 - x0)) * inv2a
+    if i == 0:
+        gax = -(y2 - y1) * inv2a
+        gay = (x2 - x1) * inv2a
+    elif i == 1:
+        gax = -(y0 - y2) * inv2a
+        gay = (x0 - x2) * inv2a
+    else:
+        gax = -(y1 - y0) * inv2a
+        gay = (x1 - x0) * inv2a
+    return du1x, du1y, du2x, du2y, gax, gay
+
+
+@jit
 def _patch_solve(
     a,
     vertices,
@@ -304,6 +324,8 @@ def _patch_solve(
     f2c,
     load1,
     load2,
+    redist,
+    gamma,
     out,
     edge_ids,
     emap,
@@ -324,6 +346,7 @@ def _patch_solve(
     div,
     tau,
     gloc,
+    kapj,
 ):
     """Solve the patch problem of vertex a; add its local dof values to ``out`` (2, M, 8).
 
@@ -396,9 +419,11 @@ def _patch_solve(
     for p in range(nt):
         for r in range(n_e):
             cmat[p, r] = 0.0
-    lam_a = 0.0 if not interior else lam[a]
     r1a = 0.0 if not interior else rho1[a]
     r2a = 0.0 if not interior else rho2[a]
+    lam_a = 0.0 if not interior else lam[a]
+    redist_a = interior and redist.shape[0] > 1 and redist[a]
+    gam = gamma[a] if redist_a else 0.0
     # --- per triangle: local matrices, bubble elimination, scatter
     for p in range(nt):
         t = patch_triangles[pstart + p]
@@ -413,21 +438,9 @@ def _patch_solve(
         x2 = vertices[i2, 0]
         y2 = vertices[i2, 1]
         area = rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau)
-        # grad u = sum_v u_v rot(edge opposite v) / (2|K|); grad psi_a likewise
-        inv2a = 0.5 / area
-        du1x = -(u1[i0] * (y2 - y1) + u1[i1] * (y0 - y2) + u1[i2] * (y1 - y0)) * inv2a
-        du1y = (u1[i0] * (x2 - x1) + u1[i1] * (x0 - x2) + u1[i2] * (x1 - x0)) * inv2a
-        du2x = -(u2[i0] * (y2 - y1) + u2[i1] * (y0 - y2) + u2[i2] * (y1 - y0)) * inv2a
-        du2y = (u2[i0] * (x2 - x1) + u2[i1] * (x0 - x2) + u2[i2] * (x1 - x0)) * inv2a
-        if i == 0:
-            gax = -(y2 - y1) * inv2a
-            gay = (x2 - x1) * inv2a
-        elif i == 1:
-            gax = -(y0 - y2) * inv2a
-            gay = (x0 - x2) * inv2a
-        else:
-            gax = -(y1 - y0) * inv2a
-            gay = (x1 - x0) * inv2a
+        du1x, du1y, du2x, du2y, gax, gay = _gradients(
+            i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, 0.5 / area
+        )
         m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
         m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
         # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
@@ -446,8 +459,28 @@ def _patch_solve(
                 l2 = f2c * mij
             else:
                 l2 = load2[t, i, j]
-            gloc[j, 0] = l1 - dot1 + (lam_a - r1a) * mij
-            gloc[j, 1] = l2 - dot2 + (-lam_a - r2a) * mij
+            gloc[j, 0] = l1 - dot1 - r1a * mij
+            gloc[j, 1] = l2 - dot2 - r2a * mij
+            # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
+            kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
+        if redist_a:
+            # redistributed contact load (fastmem.flux.contact_redistribution): the
+            # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
+            # negative vertex values cut to 0, plus gamma_a m_K psi_a
+            ssum = kapj[0] + kapj[1] + kapj[2]
+            scale = 12.0 / area
+            n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
+            n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
+            n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
+            nsum = n0 + n1 + n2
+            # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
+            gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
+            kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
+            kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
+            kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
+        for j in range(3):
+            gloc[j, 0] += kapj[j]
+            gloc[j, 1] -= kapj[j]
         # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
         b00 = div[1, 6]
         b01 = div[1, 7]
@@ -567,6 +600,8 @@ def reconstruct_colored(
     f2c,
     load1,
     load2,
+    redist,
+    gamma,
     max_nt,
     n_chunks_hint,
 ):
@@ -590,6 +625,13 @@ def reconstruct_colored(
         Constant loads, used when ``load1``/``load2`` has shape (1, 3, 3).
     load1, load2 : float64 (M, 3, 3) or (1, 3, 3)
         Load moments ``int_K f lambda_i lambda_j`` for non-constant data.
+    redist : bool (N,) or (1,)
+        Vertices whose contact load is redistributed (shape (1,): none): on
+        triangle K the load of patch a is then ``psi_a (mu_1 f_2 - mu_2 f_1) /
+        (mu_1 + mu_2) + gamma_a psi_a`` instead of ``lam_a psi_a``
+        (:func:`fastmem.flux.contact_redistribution`).
+    gamma : float64 (N,) or (1,)
+        The mass corrections gamma_a.
     max_nt : int
         Largest number of triangles in a patch (sizes the workspaces).
     n_chunks_hint : int
@@ -635,6 +677,7 @@ def reconstruct_colored(
             div = np.empty((3, 8))
             tau = np.empty((3, 2, 8))
             gloc = np.empty((3, 2))
+            kapj = np.empty(3)
             k0 = lo + (count * ch) // n_chunks
             k1 = lo + (count * (ch + 1)) // n_chunks
             for k in range(k0, k1):
@@ -660,6 +703,8 @@ def reconstruct_colored(
                     f2c,
                     load1,
                     load2,
+                    redist,
+                    gamma,
                     out,
                     edge_ids,
                     emap,
@@ -680,6 +725,7 @@ def reconstruct_colored(
                     div,
                     tau,
                     gloc,
+                    kapj,
                 )
     # local dof values -> canonical coefficients, in place
     rows = out.reshape((2 * m, 8))

@@ -122,7 +122,9 @@ def _mu_on(mu, k):
 
 
 # --------------------------------------------------------------------- patch problem
-def patch_problem(scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None, weighted=True):
+def patch_problem(
+    scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None, weighted=True, contact=None
+):
     """Solve the RT1 patch problem of vertex ``a`` for one membrane.
 
     Parameters
@@ -130,7 +132,10 @@ def patch_problem(scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None, we
     u : nodal values of u_ih; lam_a : the signed contact term (+lam_a for membrane 1,
     -lam_a for membrane 2, 0 at boundary vertices); r_a : R_i,a (0 at boundary
     vertices); f, mu : the membrane's load and tension; weighted : minimise
-    ``||mu^(-1/2) (tau + sigma)||`` (default) or ``||tau + sigma||``.
+    ``||mu^(-1/2) (tau + sigma)||`` (default) or ``||tau + sigma||``; contact :
+    optional callable ``(k) -> (3,)`` giving the signed contact load of the
+    patch on triangle k as values at its three vertices (a P1 function),
+    used instead of ``lam_a psi_a``.
 
     Returns
     -------
@@ -176,7 +181,10 @@ def patch_problem(scene, a, u, lam_a, r_a, f, mu, owners=None, boundary=None, we
         ql = slice(3 * j, 3 * j + 3)
         div[ql, sl] = np.einsum("p,pl,pi->li", w, QUAD_BARY, dphi)
         # g = psi_a f - mu grad psi_a . grad u + (lam_a - R_a / B_a) psi_a
-        gp = -mu_k * grads[la] @ grad_u + (lam_a - r_a / b_a) * psi
+        if contact is None:
+            gp = -mu_k * grads[la] @ grad_u + (lam_a - r_a / b_a) * psi
+        else:
+            gp = -mu_k * grads[la] @ grad_u - r_a / b_a * psi + QUAD_BARY @ contact(k)
         rhs[ql] = np.einsum("p,pl,p->l", w, QUAD_BARY, gp)
         rhs[ql] += _f_psi_q(f, tri, p, area, la, scene.load_degree)
         qmean[ql] = area / 3.0
@@ -238,10 +246,15 @@ def _boundary_vertices(owners, n_vertices):
     return bnd
 
 
-def naive_reconstruct(scene, u1, u2, lam, r1=None, r2=None, return_patches=False, weighted=True):
+def naive_reconstruct(
+    scene, u1, u2, lam, r1=None, r2=None, return_patches=False, weighted=True, contact=None
+):
     """Equilibrated fluxes sigma_1h, sigma_2h in the canonical representation.
 
     ``weighted``: patch problems in the mu-weighted norm (default) or unweighted.
+    ``contact``: optional dict ``a -> (k -> (3,))``: the contact load of the patch
+    of a on triangle k (vertex values, membrane 1's sign; membrane 2 gets its
+    negative) instead of ``lam_a psi_a``; vertices not in the dict keep it.
 
     Returns ``(coef1, coef2)``, each of shape (M, 8); with ``return_patches=True``
     also a list ``patches`` of ``(a, i, tris, coef_a, zero_edges)`` (i = 0, 1).
@@ -260,9 +273,11 @@ def naive_reconstruct(scene, u1, u2, lam, r1=None, r2=None, return_patches=False
     for a in range(mesh.n_vertices):
         for i, (u, sgn, r, f, mu) in enumerate(data):
             lam_a = 0.0 if boundary[a] else sgn * lam[a]
+            piece = None if contact is None else contact.get(a)
+            hook = None if piece is None else (lambda k, piece=piece, sgn=sgn: sgn * piece(k))
             r_a = 0.0 if boundary[a] else r[a]
             tris, coef, zero_edges = patch_problem(
-                scene, a, u, lam_a, r_a, f, mu, owners, boundary, weighted
+                scene, a, u, lam_a, r_a, f, mu, owners, boundary, weighted, hook
             )
             out[i][tris] += coef
             if return_patches:

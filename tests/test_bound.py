@@ -145,3 +145,93 @@ def test_flux_term_kernel_matches_numpy_reference(rng):
         flux_terms(scene, u1, r.u2, fl), _flux_terms_reference(scene, u1, r.u2, fl), strict=True
     ):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+
+
+# ------------------------------------------------ heterogeneous and extreme tensions
+
+
+def _checkerboard(mesh, c, blocks=4):
+    """Per-triangle values 1 and c on a blocks x blocks checkerboard of (-1, 1)^2."""
+    cen = mesh.vertices[mesh.triangles].mean(axis=1)
+    i = np.floor((cen[:, 0] + 1.0) / 2.0 * blocks)
+    j = np.floor((cen[:, 1] + 1.0) / 2.0 * blocks)
+    return np.where((i + j) % 2 == 0, 1.0, c)
+
+
+def _reference_error(mesh, levels, build):
+    """``err(u1, u2) = |||u_ref - u_h|||`` with u_ref ``levels`` refinements finer than mesh.
+
+    ``build(mesh, k)`` makes the scene on a mesh whose triangles are the
+    children of those of the coarse one, k per coarse triangle in order (the
+    children inherit the tension).  The coarse P1 functions are prolonged
+    exactly (vertex N + e of ``refine()`` is the midpoint of edge e); the
+    energy norm uses the per-triangle tensions.
+    """
+    from fastmem.assembly import assemble_stiffness
+
+    chain = [mesh]
+    for _ in range(levels):
+        chain.append(chain[-1].refine())
+    fine = chain[-1]
+    ref_scene = build(fine, 4**levels)
+    ref = fm.solve(ref_scene, method="exact")
+    stiff = [assemble_stiffness(fine, mu) for mu in (ref_scene.mu1, ref_scene.mu2)]
+
+    def err(u1, u2):
+        for m in chain[:-1]:
+            e = m.edges
+            u1 = np.concatenate([u1, 0.5 * (u1[e[:, 0]] + u1[e[:, 1]])])
+            u2 = np.concatenate([u2, 0.5 * (u2[e[:, 0]] + u2[e[:, 1]])])
+        d1, d2 = ref.u1 - u1, ref.u2 - u2
+        return float(np.sqrt(d1 @ (stiff[0] @ d1) + d2 @ (stiff[1] @ d2)))
+
+    return err
+
+
+@pytest.mark.parametrize("c", [1e6, 1e-6])
+@pytest.mark.parametrize("mesh_name", ["structured", "jittered"])
+def test_bound_holds_for_jumps_of_1e6(c, mesh_name, rng):
+    """eta >= |||u_ref - u_h||| for a checkerboard mu1 in {1, c}, u_ref 3 refinements finer.
+
+    Exact and inexact solves and a perturbed triple (R != 0, lam of both signs,
+    interpenetration).  u_ref is itself an approximation: this checks eta
+    against the part of the error the reference resolves.
+    """
+    from meshes import perturbed_square
+
+    mesh = fm.Mesh.square(8) if mesh_name == "structured" else perturbed_square(8, 0.3)
+
+    mu1 = _checkerboard(mesh, c)
+
+    def build(m, k=1):
+        return fm.Scene(m, mu=(np.repeat(mu1, k), 1.0), f=(-4.0, 2.0), g=0.1)
+
+    err = _reference_error(mesh, 3, build)
+    scene = build(mesh)
+    for method in ("exact", "inexact"):
+        r = fm.solve(scene, method=method, estimate=True)
+        assert r.eta >= err(r.u1, r.u2), method
+    ii = mesh.interior_vertices
+    u1, u2, lam = r.u1.copy(), r.u2.copy(), r.lam.copy()
+    u2[ii] += 0.02 * rng.standard_normal(ii.size)
+    lam[ii] += 0.5 * rng.standard_normal(ii.size)
+    assert fm.estimate(scene, u1, u2, lam).eta >= err(u1, u2)
+
+
+@pytest.mark.parametrize("mu", [(1e-6, 1e6), (1e6, 1e-6), (1.0, 1e-6)])
+def test_bound_holds_for_extreme_constant_tensions(mu):
+    """Manufactured family (exact solution known): eta >= error, exact and perturbed triples."""
+    ms = fm.Manufactured(mu=mu)
+    rng = np.random.default_rng(37)
+    for n in (8, 16):
+        mesh = fm.Mesh.square(n)
+        scene = ms.scene(mesh)
+        r = fm.solve(scene, estimate=True, method="exact")
+        assert r.eta >= ms.energy_error(mesh, r.u1, r.u2)
+        ii = mesh.interior_vertices
+        u1, u2, lam = r.u1.copy(), r.u2.copy(), r.lam.copy()
+        scale = np.abs(u1).max()
+        u1[ii] += 1e-3 * scale * rng.standard_normal(ii.size)
+        lam[ii] += 0.1 * rng.standard_normal(ii.size)
+        est = fm.estimate(scene, u1, u2, lam)
+        assert est.eta >= ms.energy_error(mesh, u1, u2)
