@@ -137,6 +137,7 @@ def _install(tracker):
 
 def worker(n: int) -> dict:
     import fastmem as fm
+    from fastmem.options import estimate_memory
 
     fm.warm_up("inexact")  # kernels compiled or loaded before anything is measured
     gc.collect()
@@ -169,6 +170,8 @@ def worker(n: int) -> dict:
         "peak_bytes": peaks,
         "peak_bytes_per_vertex": {p: v / nv for p, v in peaks.items()},
         "overall_peak_bytes": max(peaks.values()),
+        # the memory guard's estimate (fastmem.options.estimate_memory) for this run
+        "guard_estimate_bytes": estimate_memory(nv, mesh.n_triangles, "inexact", True),
     }
 
 
@@ -190,6 +193,12 @@ def main(argv=None):
     payload = {
         "benchmark": "memory",
         "description": __doc__.split("\n\n")[0],
+        "parameters": {
+            "sizes": sizes,
+            "scene": {"mu": [1.0, 1.0], "f": [-1.0, 1.0], "g": 0.1},
+            "method": "inexact",
+            "estimate": True,
+        },
         "phases": list(PHASES),
         "rows": rows,
     }

@@ -161,7 +161,6 @@ class PCG:
         self.iterations = 0
         self.restarts = 0
         self.stuck = False
-        self._abs_a = None
         self._true = None  # (iterations, true residual norm) cache
         self._floor = None  # last attainable() value
         self.restart()
@@ -198,9 +197,12 @@ class PCG:
 
     def attainable(self) -> float:
         """Smallest residual norm float64 can resolve here: ``64 eps ||(|A| |x| + |b|)||``."""
-        if self._abs_a is None:
-            self._abs_a = abs(self.a)
-        scale = self._abs_a @ np.abs(self.x) + np.abs(self.b)
+        a = self.a
+        if getattr(a, "format", None) == "csr":  # |A| on A's pattern, not kept: no index copy
+            abs_a = sp.csr_matrix((np.abs(a.data), a.indices, a.indptr), shape=a.shape)
+        else:
+            abs_a = abs(a)
+        scale = abs_a @ np.abs(self.x) + np.abs(self.b)
         return 64.0 * np.finfo(np.float64).eps * float(np.linalg.norm(scale))
 
     def at_roundoff(self, rtol: float) -> bool:

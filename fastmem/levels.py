@@ -87,6 +87,9 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             triple = prolong_triple(sc, levels[lev - 1], triple)
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio
+            # the coarser scene (mesh topology, matrices: a third of the fine level's
+            # memory over the chain) is done with: free it before the finer level's solve
+            levels[lev - 1] = None
         # intermediate levels only make initial guesses: no flux there (see newton_min)
         certify = lev == 0 or lev == len(levels) - 1
         if certify and options.newton.needs_estimate:

@@ -89,7 +89,11 @@ class _Base:
         self.b_int = mesh.lumped_mass[self.interior]
         self.g_full = scene.boundary_values
         self.factorizations = 0
-        self.xy = mesh.vertices[self.interior]
+
+    @property
+    def xy(self):
+        """Coordinates of the interior vertices (the direct solver's ordering; not kept)."""
+        return self.scene.mesh.vertices[self.interior]
 
     def _full(self, interior_values, boundary_values=0.0):
         out = np.empty(self.n)

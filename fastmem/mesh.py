@@ -49,6 +49,12 @@ integral values (no silent truncation), and anything that is not an array
 (None, dicts, ragged lists); masked arrays with masked entries raise
 :class:`~fastmem.errors.DataError`.  The mesh never aliases the caller's
 arrays, and its own arrays are read-only.
+
+Derived index arrays: ``edges`` is int32 (the 32-bit index path: at most
+:data:`INDEX_LIMIT` = 2**31 - 1 vertices and 715,827,882 triangles, refused
+with :class:`~fastmem.errors.MeshError` above; the n = 4096 square has 33.5M
+triangles); ``triangle_edges``, ``edge_triangles`` and the patch arrays are
+int64.
 """
 
 from __future__ import annotations
@@ -72,6 +78,7 @@ from .errors import (
 )
 from .kernels import assembly as _ka
 from .kernels import topology as _kt
+from .options import check_memory
 
 __all__ = ["Mesh"]
 
@@ -83,6 +90,12 @@ _DEGENERATE_TOL = 1e-13
 # Supported length range: |coordinate| <= _MAX_COORD and h_K >= _MIN_DIAMETER.
 _MAX_COORD = 1e50
 _MIN_DIAMETER = 1e-50
+
+#: Largest vertex count and half-edge count (3 M) of the 32-bit index path: the mesh
+#: topology (:mod:`fastmem.kernels.topology`: ``edges`` and the half-edge pass) and the
+#: CSR pattern index with int32.  Up to 2**31 - 1 vertices and 715,827,882 triangles;
+#: larger meshes are refused with MeshError (the n = 4096 square has 33.5M triangles).
+INDEX_LIMIT = 2**31 - 1
 
 # Local edge i joins local vertices _EDGE_VERTS[i] (edge opposite local vertex i).
 _EDGE_VERTS = np.array([[1, 2], [2, 0], [0, 1]])
@@ -360,6 +373,7 @@ class Mesh:
         if "edges" in self._cache:
             return self._cache
         n = self.n_vertices
+        check_index_limit(n, self.n_triangles)
         edges, tri_edges, et, counts, fwd_count = _kt.edge_topology(self.triangles, n)
         if (counts > 2).any():
             e = int(np.flatnonzero(counts > 2)[0])
@@ -398,7 +412,10 @@ class Mesh:
 
     @property
     def edges(self) -> np.ndarray:
-        """Edges as vertex pairs (E, 2) with ``edges[:, 0] < edges[:, 1]`` (global orientation)."""
+        """Edges as int32 vertex pairs (E, 2), ``edges[:, 0] < edges[:, 1]`` (global orientation).
+
+        int32 (the 32-bit index path, :data:`INDEX_LIMIT`): 24 instead of 48 bytes per vertex.
+        """
         return self._topology()["edges"]
 
     @property
@@ -498,6 +515,15 @@ class Mesh:
             lower-right to upper-left, "symmetric" pointing towards the centre
             in every quadrant (the mesh then has the rectangle's symmetries
             when nx and ny are even).
+
+        Raises
+        ------
+        MeshError
+            Beyond the 32-bit index path (:data:`INDEX_LIMIT`).
+        MemoryLimitError
+            When building the mesh alone would exceed the machine's memory (the guard
+            of :func:`fastmem.options.check_memory`; ``FASTMEM_MEMORY_LIMIT`` overrides
+            it), before anything is allocated.
         """
         nx = _check_cells("nx", nx)
         ny = nx if ny is None else _check_cells("ny", ny)
@@ -513,6 +539,9 @@ class Mesh:
             raise ParameterError(
                 f"diagonal must be 'right', 'left' or 'symmetric', got {diagonal!r}"
             )
+        n_vertices, n_triangles = (nx + 1) * (ny + 1), 2 * nx * ny
+        check_memory(n_vertices, n_triangles, method=None)  # before anything is allocated
+        check_index_limit(n_vertices, n_triangles)
         xs = np.linspace(x0, x1, nx + 1)
         ys = np.linspace(y0, y1, ny + 1)
         if diagonal == "symmetric":  # exact symmetry of the coordinates too
@@ -659,6 +688,16 @@ class Mesh:
 
         meshio.write_points_cells(
             str(path), self.vertices, [("triangle", self.triangles)], file_format=file_format
+        )
+
+
+def check_index_limit(n_vertices: int, n_triangles: int) -> None:
+    """Refuse a mesh beyond the 32-bit index path (:data:`INDEX_LIMIT`) with MeshError."""
+    if n_vertices > INDEX_LIMIT or 3 * n_triangles > INDEX_LIMIT:
+        raise MeshError(
+            f"mesh too large for fastmem's 32-bit topology indices: {n_vertices} vertices and "
+            f"{n_triangles} triangles ({3 * n_triangles} half-edges); at most {INDEX_LIMIT} "
+            f"vertices and {INDEX_LIMIT // 3} triangles are supported"
         )
 
 

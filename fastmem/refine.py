@@ -299,7 +299,7 @@ def refine_marked(mesh: Mesh, marked, refinement_edge=None, *, validate: bool = 
     edge_vertex = np.full(edges.shape[0], -1, dtype=np.int64)
     edge_vertex[bisected] = np.arange(n, n + bisected.size)
     children, parent = _kn.bisect(mesh.triangles, tri_edges, ref, edge_vertex)
-    parent_edges = edges[bisected]
+    parent_edges = edges[bisected].astype(np.int64)  # mesh.edges is int32
     v = mesh.vertices
     vertices = np.empty((n + bisected.size, 2))
     vertices[:n] = v

@@ -12,6 +12,7 @@ import logging
 import numbers
 
 import numpy as np
+import scipy.sparse as sp
 
 from .assembly import DEFAULT_LOAD_DEGREE, assemble_stiffness, evaluate_callable
 from .errors import DataError, InputTypeError, ParameterError, ReadOnlyError
@@ -156,6 +157,19 @@ def _describe(value):
     if isinstance(value, np.ndarray):
         return {"kind": "array", "size": int(value.size)}
     return {"kind": "constant", "value": value}
+
+
+def _scaled(a, mu: float):
+    """``mu A`` sharing ``A``'s pattern arrays (``A`` itself for ``mu = 1``).
+
+    The values are those of ``A * mu`` bit for bit; only the 32 B/vertex copy of
+    ``indices``/``indptr`` (and for ``mu = 1`` the 56 B/vertex of ``data``) is saved.
+    """
+    if mu == 1.0:
+        return a
+    out = sp.csr_matrix((a.data * mu, a.indices, a.indptr), shape=a.shape, copy=False)
+    out.has_sorted_indices = a.has_sorted_indices
+    return out
 
 
 class Scene:
@@ -370,12 +384,16 @@ class Scene:
         return self._cache["A"]
 
     def weighted_stiffness(self, i: int):
-        """``mu_i A`` for membrane i in {1, 2} (per-triangle mu supported), CSR, cached."""
+        """``mu_i A`` for membrane i in {1, 2} (per-triangle mu supported), CSR, cached.
+
+        For a constant ``mu_i`` the matrix shares the pattern of :attr:`stiffness`
+        (and is :attr:`stiffness` itself for ``mu_i = 1``): treat it as read-only.
+        """
         key = f"A{i}"
         if key not in self._cache:
             mu = self.mu1 if i == 1 else self.mu2
             if isinstance(mu, float):
-                self._cache[key] = self.stiffness * mu
+                self._cache[key] = _scaled(self.stiffness, mu)
             else:
                 self._cache[key] = assemble_stiffness(self.mesh, mu)
         return self._cache[key]

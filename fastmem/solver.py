@@ -30,7 +30,7 @@ from .history import HISTORY_COLUMNS
 from .levels import solve_levels
 from .loaddata import expect_estimates
 from .newton import complementarity
-from .options import METHODS, SolveOptions
+from .options import METHODS, SolveOptions, check_memory
 from .result import Result, check_triple
 from .scene import Scene
 
@@ -64,6 +64,7 @@ def solve(
     max_levels: int | None = None,
     time_budget: float | None = None,
     level_monitor=None,
+    memory_limit=None,
 ) -> Result:
     """Solve the discrete two-membrane contact problem with Newton-min.
 
@@ -163,6 +164,16 @@ def solve(
         (predicted from the last level's time per vertex).
     level_monitor : callable, optional
         Called with each row of ``result.adaptivity`` (a dict) when its mesh is done.
+    memory_limit : int, str, False or None
+        The memory guard (:func:`fastmem.options.check_memory`): before any work the
+        peak memory of the solve is estimated from the mesh size, the method and
+        ``estimate``, and a solve that cannot fit is refused with
+        :class:`~fastmem.options.MemoryLimitError` naming the estimate and the limit.
+        None (default): the limit is the environment variable ``FASTMEM_MEMORY_LIMIT``
+        if set (bytes, or with a K/M/G/T suffix; 0, off or none disable the check),
+        else the machine's physical memory (or its cgroup limit).  A number (bytes)
+        or a string like ``"40G"`` sets it; ``False`` or 0 disables the check.  With
+        ``tol``/``rtol`` only the initial mesh is checked.
 
     Returns
     -------
@@ -183,6 +194,8 @@ def solve(
     ------
     CyclingError
         With ``safeguard=False``: when an active set repeats an earlier one.
+    MemoryLimitError
+        The estimated peak memory exceeds the limit (see ``memory_limit``).
     """
     if not isinstance(scene, Scene):
         raise InputTypeError(f"scene must be a fastmem.Scene, got {type(scene).__name__}")
@@ -221,6 +234,14 @@ def solve(
             f"max_vertices={adapt.max_vertices} is smaller than the initial mesh "
             f"({scene.mesh.n_vertices} vertices)"
         )
+    mesh = scene.mesh
+    check_memory(
+        mesh.n_vertices,
+        mesh.n_triangles,
+        options.newton.method,
+        options.newton.needs_estimate,
+        memory_limit,
+    )
     init = None if initial is None else check_triple(scene.mesh, initial, prefix="initial ")
     timings = {}
     t_start = time.perf_counter()

@@ -1,0 +1,120 @@
+"""Memory: the guard that refuses runs that cannot fit, and the 32-bit index path's limit.
+
+Nothing here allocates anything big: the refusals happen before any array of the
+mesh size exists (checked with the process's peak RSS where it matters).
+"""
+
+import resource
+
+import numpy as np
+import pytest
+
+import fastmem as fm
+import fastmem.mesh as fmesh
+from fastmem.errors import FastmemError, MeshError
+from fastmem.options import (
+    MEMORY_LIMIT_ENV,
+    MemoryLimitError,
+    check_memory,
+    estimate_memory,
+    memory_limit,
+)
+
+
+def _peak_rss_bytes():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def test_absurd_mesh_is_refused_before_allocating(monkeypatch):
+    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+    before = _peak_rss_bytes()
+    with pytest.raises(MemoryLimitError) as info:
+        fm.Mesh.square(15_000)  # 225M vertices, 450M triangles: ~110 GB to build
+    assert _peak_rss_bytes() - before < 50e6
+    msg = str(info.value)
+    assert "225030001 vertices" in msg
+    assert "GB" in msg
+    assert "the machine's memory" in msg
+    assert MEMORY_LIMIT_ENV in msg
+    assert isinstance(info.value, FastmemError)
+    assert isinstance(info.value, MemoryError)
+
+
+def test_solve_refused_above_the_limit_names_estimate_and_limit(monkeypatch):
+    scene = fm.Scene(fm.Mesh.square(8), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "1M")
+    with pytest.raises(MemoryLimitError) as info:
+        fm.solve(scene)
+    msg = str(info.value)
+    need = estimate_memory(81, 128, "inexact", True)
+    assert f"{need / 1e9:.1f} GB" in msg
+    assert MEMORY_LIMIT_ENV in msg
+    assert "0.0 GB" in msg
+    assert "method='inexact'" in msg
+    assert "81 vertices" in msg
+    assert "A" not in scene._cache  # refused before the assembly
+    # the keyword overrides the environment variable
+    fm.solve(scene, memory_limit=False)
+    fm.solve(scene, memory_limit="64G")
+    with pytest.raises(MemoryLimitError, match="memory_limit is 0.0 GB"):
+        fm.solve(scene, memory_limit=1000)
+
+
+def test_environment_variable_disables_and_parses(monkeypatch):
+    for off in ("0", "off", "none"):
+        monkeypatch.setenv(MEMORY_LIMIT_ENV, off)
+        assert memory_limit() == (None, MEMORY_LIMIT_ENV)
+        check_memory(10**9, 2 * 10**9)  # no check: returns the estimate
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "20G")
+    assert memory_limit()[0] == 20 * 2**30
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "lots")
+    with pytest.raises(fm.errors.ParameterError, match=MEMORY_LIMIT_ENV):
+        memory_limit()
+    with pytest.raises(fm.errors.ParameterError, match="memory_limit"):
+        memory_limit(-5)
+
+
+def test_estimate_model():
+    n = 4096  # the issue's target: 16.8M vertices, 33.5M triangles
+    nv, nt = (n + 1) ** 2, 2 * n * n
+    inexact = estimate_memory(nv, nt, "inexact", True)
+    assert estimate_memory(nv, nt, "exact-amg", False) < estimate_memory(nv, nt, "exact-amg")
+    assert estimate_memory(nv, nt, "exact") > inexact
+    assert estimate_memory(nv, nt, None) < inexact
+    # per-triangle work counts when a mesh has many triangles per vertex
+    assert estimate_memory(nv, 4 * nt) > inexact
+    with pytest.raises(fm.errors.ParameterError):
+        estimate_memory(nv, nt, "fast")
+
+
+def test_int32_index_limit_refuses_with_a_fake_size():
+    with pytest.raises(MeshError, match="32-bit"):
+        fmesh.check_index_limit(2**31, 10)
+    with pytest.raises(MeshError, match="715827882 triangles"):
+        fmesh.check_index_limit(1000, 715_827_883)
+    fmesh.check_index_limit(2**31 - 1, 715_827_882)  # the limit itself is fine
+
+
+def test_int32_index_limit_on_a_real_mesh(monkeypatch):
+    mesh = fm.Mesh.square(4)
+    monkeypatch.setattr(fmesh, "INDEX_LIMIT", 3 * mesh.n_triangles - 1)
+    with pytest.raises(MeshError, match="32-bit topology indices"):
+        _ = mesh.edges
+    monkeypatch.setattr(fmesh, "INDEX_LIMIT", 3 * mesh.n_triangles)
+    assert mesh.edges.dtype == np.int32
+    # and the generator refuses before allocating (memory guard disabled to reach it)
+    monkeypatch.setattr(fmesh, "INDEX_LIMIT", 100)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "0")
+    with pytest.raises(MeshError, match="32-bit"):
+        fm.Mesh.square(8)
+
+
+def test_shared_pattern_of_weighted_stiffness():
+    mesh = fm.Mesh.square(6)
+    a = fm.Scene(mesh, mu=(1.0, 2.5)).stiffness
+    scene = fm.Scene(mesh, mu=(1.0, 2.5))
+    a1, a2 = scene.weighted_stiffness(1), scene.weighted_stiffness(2)
+    assert a1 is scene.stiffness  # mu1 = 1: A itself
+    assert np.shares_memory(a2.indices, scene.stiffness.indices)  # no copy of the pattern
+    assert np.shares_memory(a2.indptr, scene.stiffness.indptr)
+    np.testing.assert_array_equal((a * 2.5).toarray(), a2.toarray())  # bit for bit
