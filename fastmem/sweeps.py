@@ -51,9 +51,9 @@ Rules (docs/sweeps.md has the reasons):
   index write loses nothing, the next sweep finds the archive.
 * **Threads.** With ``client=None`` a :class:`distributed.LocalCluster` of
   processes: ``workers`` (default: the number of cores) processes with one
-  task thread each; Numba threads per worker = cores // workers
-  (``NUMBA_NUM_THREADS`` and ``OMP_NUM_THREADS`` of the worker processes);
-  BLAS threads 1 (``OPENBLAS_NUM_THREADS``/``MKL_NUM_THREADS``, and
+  task thread each; Numba threads per worker = cores // workers (each task
+  calls :func:`numba.set_num_threads` before solving); BLAS threads 1
+  (dask's ``OMP/OPENBLAS/MKL_NUM_THREADS=1`` in its workers, and
   :func:`fastmem.solve` limits BLAS to 1 in its solver phases anyway).  On an
   existing cluster each task sets Numba threads = cores of its host // task
   threads of all workers on that host (or ``numba_threads``).
@@ -347,7 +347,9 @@ def _check_signature(make_scene, runs) -> None:
 
 def _check_solve_options(solve_options) -> dict:
     """Validate the keywords of :func:`fastmem.solve` once, before anything starts."""
-    from .options import SolveOptions
+    from dataclasses import fields
+
+    from .options import AdaptOptions, InnerOptions, NewtonOptions, RecordOptions, SolveOptions
     from .solver import solve
 
     if solve_options is None:
@@ -374,9 +376,14 @@ def _check_solve_options(solve_options) -> dict:
         json.dumps(options, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ParameterError(f"solve_options must be JSON values ({exc})") from exc
-    keywords = {n: p.default for n, p in sig.items() if n not in (*_PER_RUN, "blas_threads")} | {
-        n: v for n, v in options.items() if n != "blas_threads"
+    # the keywords fm.solve groups into option objects are checked by those objects;
+    # the others (blas_threads, ...) are handled by fm.solve itself
+    grouped = {
+        f.name
+        for cls in (NewtonOptions, InnerOptions, RecordOptions, AdaptOptions)
+        for f in fields(cls)
     }
+    keywords = {n: v for n, v in options.items() if n in grouped}
     SolveOptions.from_keywords(**keywords)  # raises ParameterError naming the option
     if options.get("blas_threads") is not None:
         from .config import _check_count
@@ -493,9 +500,37 @@ def _valid_archive(path: Path, params: dict):
     return result
 
 
+_MMAP_THRESHOLD = 32 << 20  # bytes: heap (not mmap) for arrays below 32 MiB
+_malloc_tuned = []
+
+
+def _tune_malloc() -> None:
+    """Undo the cost of dask's ``MALLOC_TRIM_THRESHOLD_`` in this worker process (glibc).
+
+    dask's Nanny sets ``MALLOC_TRIM_THRESHOLD_=65536`` in its workers.  Any
+    such setting switches off glibc's dynamic mmap threshold, so that every
+    array above 128 KiB is a fresh mmap whose pages fault in again: a solve at
+    n = 256 took 1.5x as long (1.21 s instead of 0.80 s, one thread).  A fixed
+    mmap threshold of 32 MiB gives the time back (0.83 s) and keeps the trimming.
+    Once per process, and only when the variable is set.
+    """
+    if _malloc_tuned or "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+        return
+    _malloc_tuned.append(True)
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(ctypes.c_int(-3), ctypes.c_int(_MMAP_THRESHOLD))  # M_MMAP_THRESHOLD
+    except (OSError, AttributeError):  # not glibc
+        return
+
+
 def _set_task_threads(threads: dict) -> None:
     """Numba threads of this task thread (``set_num_threads`` is per thread)."""
     import numba
+
+    _tune_malloc()
 
     count = threads.get("*")
     if count is None:
@@ -815,18 +850,22 @@ def _connect(client, workers, numba_threads, max_retries):
         cores = os.cpu_count() or 1
         n = cores if workers is None else workers
         per = max(1, cores // n) if numba_threads is None else numba_threads
-        env = {
-            "NUMBA_NUM_THREADS": str(per),
-            "OMP_NUM_THREADS": str(per),
-            "OPENBLAS_NUM_THREADS": "1",
-            "MKL_NUM_THREADS": "1",
-            "FASTMEM_BLAS_THREADS": "1",
-        }
+        # Numba threads: numba.set_num_threads(per) in each task (_set_task_threads), not
+        # NUMBA_NUM_THREADS: a worker whose main module imports fastmem may start Numba's
+        # pool before a post-spawn variable is set, and a pre-spawn one leaks into this
+        # process, whose next compilation would then refuse the changed value.
+        pre_spawn = dict(dask.config.get("distributed.nanny.pre-spawn-environ"))
         config = {
             "distributed.scheduler.allowed-failures": max_retries,
             "distributed.scheduler.worker-saturation": 1.0,
+            # see _tune_malloc: not set at all in our workers (the whole dict is
+            # replaced: a dotted key set to None would delete the nanny section
+            # from dask's config when the block ends)
+            "distributed.nanny.pre-spawn-environ": {
+                k: v for k, v in pre_spawn.items() if k != "MALLOC_TRIM_THRESHOLD_"
+            },
         }
-        touched = [*dask.config.get("distributed.nanny.pre-spawn-environ"), "PYTHONHASHSEED"]
+        touched = [*pre_spawn, "PYTHONHASHSEED"]
         with _restored_environ(touched), dask.config.set(config):
             with (
                 distributed.LocalCluster(
@@ -834,7 +873,6 @@ def _connect(client, workers, numba_threads, max_retries):
                     threads_per_worker=1,
                     processes=True,
                     dashboard_address=None,
-                    env=env,
                 ) as cluster,
                 distributed.Client(cluster) as c,
             ):
