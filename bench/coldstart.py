@@ -14,7 +14,10 @@ process:
   cold run (Numba's ``numba:compile`` events; times of nested compilations are
   included in their caller's and listed as well).
 
-    python -m bench.coldstart [--repeat 3]
+``--quick`` checks the machinery in seconds: ``fastmem run --n 8`` with the
+cache as it is (no empty cache), and the compile events of one small kernel.
+
+    python -m bench.coldstart [--quick] [--repeat 3]
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import time
 from bench._common import emit_worker_result, finish, parse, parser, progress, summary
 
 COMMAND = ["-m", "fastmem", "run", "--no-save"]
+QUICK_COMMAND = [*COMMAND, "--n", "8"]
 
 
 def _timed(args, env) -> tuple[float, str]:
@@ -43,15 +47,24 @@ def _timed(args, env) -> tuple[float, str]:
     return seconds, res.stdout
 
 
-def compile_worker() -> dict:
-    """Run the default scene with Numba's compile events recorded (empty cache expected)."""
+def compile_worker(quick: bool) -> dict:
+    """Run the default scene with Numba's compile events recorded (empty cache expected).
+
+    ``quick``: call one small kernel instead (checks the event bookkeeping).
+    """
+    import numpy as np
+    from fastmem.kernels import rows as _rows
     from numba.core import event
 
     import fastmem as fm
 
     with event.install_recorder("numba:compile") as rec:
         t0 = time.perf_counter()
-        fm.solve(fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+        if quick:
+            z = np.zeros(3)
+            _rows.row_measures(z, z, z, np.arange(3), np.zeros(3, dtype=bool), 1.0)
+        else:
+            fm.solve(fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
         seconds = time.perf_counter() - t0
     starts, rows = {}, []
     for ts, ev in rec.buffer:
@@ -71,16 +84,18 @@ def main(argv=None):
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parse(p, argv)
     if args.worker:
-        emit_worker_result(compile_worker())
+        emit_worker_result(compile_worker(args.quick))
         return 0
     repeat = 1 if args.quick else args.repeat
-    cold, warm, imports, outputs = [], [], [], []
+    command = QUICK_COMMAND if args.quick else COMMAND
+    cold, warm, imports, outputs, rows = [], [], [], [], []
     for k in range(repeat):
         with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
-            env = {**os.environ, "NUMBA_CACHE_DIR": cache}
-            t_cold, out = _timed(COMMAND, env)
-            t_warm, _ = _timed(COMMAND, env)
+            env = dict(os.environ) if args.quick else {**os.environ, "NUMBA_CACHE_DIR": cache}
+            t_cold, out = _timed(command, env)
+            t_warm, _ = _timed(command, env)
             t_import, _ = _timed(["-c", "import fastmem"], env)
+        rows.append({"repetition": k, "cold_s": t_cold, "warm_s": t_warm, "import_s": t_import})
         cold.append(t_cold)
         warm.append(t_warm)
         imports.append(t_import)
@@ -89,7 +104,13 @@ def main(argv=None):
     with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache}
         res = subprocess.run(
-            [sys.executable, "-m", "bench.coldstart", "--worker"],
+            [
+                sys.executable,
+                "-m",
+                "bench.coldstart",
+                "--worker",
+                *(["--quick"] if args.quick else []),
+            ],
             env=env,
             stdout=subprocess.PIPE,
             text=True,
@@ -103,7 +124,13 @@ def main(argv=None):
         progress(f"  {sec:6.2f} s  {name} (inclusive, all specialisations)")
     payload = {
         "description": __doc__.split("\n\n")[0],
-        "command": "python " + " ".join(COMMAND),
+        "parameters": {
+            "command": "python " + " ".join(command),
+            "empty_cache": not args.quick,
+            "repeat": repeat,
+        },
+        "rows": rows,
+        "command": "python " + " ".join(command),
         "cold_seconds": cold,
         "warm_seconds": warm,
         "import_seconds": imports,

@@ -122,6 +122,13 @@ def _build_parser() -> argparse.ArgumentParser:
         help="skip the a posteriori error bound (no flux reconstruction; the default method "
         "becomes exact-amg, since inexact stops by the estimators)",
     )
+    r.add_argument(
+        "--memory-limit",
+        default=None,
+        metavar="BYTES",
+        help="refuse runs whose estimated peak memory exceeds this (e.g. 40G; 0 disables the "
+        "check; default: the machine's memory, or $FASTMEM_MEMORY_LIMIT)",
+    )
     r.add_argument("-q", "--quiet", action="store_true", help="no per-step monitor")
     a = r.add_argument_group(
         "solving to a tolerance (adaptive mesh refinement, starting from the mesh above)"
@@ -315,6 +322,24 @@ def _cmd_run(args) -> int:
     if args.refine < 0:
         raise ParameterError(f"--refine must be >= 0, got {args.refine}")
     outputs = _outputs(args)  # before any work: a bad path must not cost a solve
+    if args.memory_limit is not None:  # also for the mesh constructors' own check
+        import os
+
+        from .options import MEMORY_LIMIT_ENV, memory_limit
+
+        memory_limit(args.memory_limit)  # a bad value is refused here, naming it
+        os.environ[MEMORY_LIMIT_ENV] = str(args.memory_limit)
+    if args.mesh is None:  # a structured mesh that cannot fit is refused before it is built
+        from .options import check_memory
+
+        n = DEFAULT_N if args.n is None else args.n
+        if n >= 1:
+            size = 4 ** min(args.refine, 30)
+            if args.domain == "lshape":
+                nv, nt = 3 * n * n // 4 + 2 * n + 1, 3 * n * n // 2
+            else:
+                nv, nt = (n + 1) ** 2, 2 * n * n
+            check_memory(nv * size, nt * size, method, not args.no_estimate, args.memory_limit)
     if args.threads is not None or args.blas_threads is not None:
         set_threads(numba=args.threads, blas=args.blas_threads)
     t0 = time.perf_counter()
@@ -353,6 +378,7 @@ def _cmd_run(args) -> int:
         monitor=None if adaptive else _Monitor(not args.quiet),
         **adapt,
         estimate=not args.no_estimate,
+        memory_limit=args.memory_limit,
         gamma_alg=args.gamma_alg,
         gamma_lin=args.gamma_lin,
         nested=False if args.no_nested else "auto",
@@ -476,7 +502,10 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except FastmemError as exc:
-        sys.stderr.write(f"fastmem: error: {exc}\n")
+        from .errors import MemoryLimitError
+
+        hint = " (command line: --memory-limit)" if isinstance(exc, MemoryLimitError) else ""
+        sys.stderr.write(f"fastmem: error: {exc}{hint}\n")
         return 2
 
 

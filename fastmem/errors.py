@@ -24,6 +24,7 @@ __all__ = [
     "MeshError",
     "MeshFileError",
     "MeshWarning",
+    "MemoryLimitError",
     "NumericalError",
     "ParameterError",
     "ReadOnlyError",
@@ -67,6 +68,14 @@ class NumericalError(FastmemError, ArithmeticError):
 
     Raised instead of returning non-finite results, e.g. when the data are so large or so
     badly scaled that the solution, the residuals or the estimate overflow.
+    """
+
+
+class MemoryLimitError(FastmemError, MemoryError):
+    """A run would need more memory than the machine has (:func:`fastmem.options.check_memory`).
+
+    Raised before anything large is allocated; the message names the estimate, the
+    limit and how to override it (``memory_limit=`` or ``FASTMEM_MEMORY_LIMIT``).
     """
 
 

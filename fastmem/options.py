@@ -38,8 +38,9 @@ from types import MappingProxyType
 
 import numpy as np
 
+from . import errors as _errors
 from .amg import check_amg_options
-from .errors import FastmemError, InputTypeError, ParameterError
+from .errors import InputTypeError, ParameterError
 
 __all__ = [
     "EXACT_MAX_VERTICES",
@@ -273,8 +274,7 @@ class SolveOptions:
 
 
 # --------------------------------------------------------------------- memory guard
-class MemoryLimitError(FastmemError, MemoryError):
-    """A run would need more memory than the machine has (see :func:`check_memory`)."""
+MemoryLimitError = _errors.MemoryLimitError  # defined in fastmem.errors; kept importable here
 
 
 #: Environment variable overriding the memory limit of the guard: bytes, or a number with

@@ -143,8 +143,10 @@ def no_work(monkeypatch):
         (["-o", "{tmp}/x.txt"], ["'.txt'", ".h5", ".vtu", ".xdmf"]),
         (["-o", "{tmp}/x.h5", "-o", "{tmp}/x.h5"], ["same file twice"]),
         (["--no-save", "-o", "{tmp}/x.h5"], ["--no-save"]),
+        (["--no-save"], ["not enough memory", "--memory-limit", "GB"]),
+        (["--no-save", "--memory-limit", "lots"], ["memory_limit", "'lots'"]),
     ],
-    ids=["method", "missing-dir", "suffix", "twice", "no-save-and-output"],
+    ids=["method", "missing-dir", "suffix", "twice", "no-save-and-output", "memory", "limit"],
 )
 def test_cli_refuses_before_any_work(no_work, tmp_path, capsys, argv, words):
     argv = [a.replace("{tmp}", str(tmp_path)) for a in argv]
