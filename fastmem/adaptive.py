@@ -47,7 +47,7 @@ import math
 
 from .estimators import _mass_matrix, friedrichs_constant
 from .history import ADAPTIVE_HISTORY_COLUMNS
-from .steps import EXACT_AMG_RTOL, AMGStep, StepReport
+from .steps import EXACT_AMG_RTOL, AMGStep, StepReport, release_warm
 
 __all__ = ["ADAPTIVE_HISTORY_COLUMNS", "MAX_SKIP", "SKIP_MARGIN", "AdaptiveStep"]
 
@@ -89,6 +89,8 @@ class AdaptiveStep(AMGStep):
         """CG iterations from ``triple``, checked until ``check`` lets the step stop."""
         cg, opts = self.cg, self.options
         cg.start(active, triple[0], triple[1])
+        release_warm(triple)  # a handed-over warm start is freed here (fastmem.steps)
+        del triple
         i0 = cg.iterations
         budget = s_share = math.inf
         last = None  # (i, eta_alg, CG residual) at the last check of this step

@@ -99,6 +99,9 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             hint *= HINT_SAFETY
             # ... but the outer test must not miss a stop that the true value allows
             slack = 1.0 / HINT_SAFETY
+        # handed over as a list: newton_min empties it, so the initial triple is freed
+        # with the first step's warm start instead of living through the whole level
+        triple = None if triple is None else list(triple)
         out = newton_min(
             sc,
             options,

@@ -115,12 +115,12 @@ class GeneralStep(_Base):
         a1 = scene.weighted_stiffness(1)
         a2 = scene.weighted_stiffness(2)
         self.a1_ii = a1[ii][:, ii].tocsr()
-        self.a2_ii = a2[ii][:, ii].tocsr()
         f1, f2 = scene.loads
         lift = a1 @ self.g_full  # u1 = g on the boundary, u2 = 0
         self.rhs1 = f1[ii] - lift[ii]
         self.rhs2 = f2[ii].copy()
-        self.k_ii = sp.block_diag([self.a1_ii, self.a2_ii], format="csr")
+        # A2_II only enters K (not kept: 84 bytes per vertex)
+        self.k_ii = sp.block_diag([self.a1_ii, a2[ii][:, ii].tocsr()], format="csr")
         self._lu_empty = None
 
     def prolongation(self, active):
@@ -182,12 +182,16 @@ class DecoupledStep(_Base):
         f1, f2 = scene.loads
         lift = a @ self.g_full  # A restricted to boundary columns applied to g
         # s = mu1 g on the boundary; w = g on the boundary.
-        self.fw = f1 / mu1 - f2 / mu2
-        self.rhs_w = self.fw[ii] - lift[ii]
+        fw = f1 / mu1 - f2 / mu2
+        self.rhs_w = fw[ii] - lift[ii]
         self.rhs_s = (f1 + f2)[ii] - mu1 * lift[ii]
-        self.s_boundary = mu1 * self.g_full
         self._lu = None
         self._s = None
+
+    @property
+    def s_boundary(self):
+        """``mu1 g`` on all vertices (the boundary values of s; computed on use, not kept)."""
+        return self.mu1 * self.g_full
 
     @property
     def _lu_all(self):

@@ -47,7 +47,7 @@ from .kernels import rows as _kr
 from .linear import make_step, residuals
 from .nested import warm_active_set
 from .safeguard import merit_stalled, new_safeguard_record, run_safeguard
-from .steps import AMGStep, DirectStep
+from .steps import AMGStep, DirectStep, release_warm
 
 __all__ = ["ROUNDOFF_TOL", "Checks", "LevelOutcome", "complementarity", "newton_min"]
 
@@ -166,6 +166,7 @@ class Checks:
 
     def __call__(self, triple, inner, roundoff, safeguard=0) -> Verdict:
         """Judge one iterate: residuals, estimators, criteria; record its history row."""
+        self.last = None  # the previous iterate's vectors and estimator maps: free them first
         u1, u2, lam = triple
         r1, r2 = residuals(self.scene, u1, u2, lam)
         eta_lin, eta_alg, local, glob = self._cheap(u1, u2, lam, r1, r2)
@@ -349,6 +350,8 @@ def newton_min(
     else:
         u1, u2, lam = init
         active = warm_active_set(scene, init) if prolonged else scene.active_rule(u1, u2, lam)
+        release_warm(init)  # handed over as a list (solve_levels): the caller keeps no reference
+        init = None
     seen, tracker, solved = {}, [math.inf, 0], None
     converged, reason, hit_max, k = False, "", 0, 0
     while k < no.max_newton:
@@ -378,7 +381,12 @@ def newton_min(
                 break
             k += 1
         checks.k, checks.active, solved = k, active, active
-        report = step.solve(active, (u1, u2, lam), checks)
+        # the warm start is handed over (the step empties the list once started from it):
+        # no reference here keeps the previous iterate alive during the estimators
+        warm = [u1, u2, lam]
+        u1 = u2 = lam = None
+        report = step.solve(active, warm, checks)
+        del warm
         last = checks.last
         u1, u2, lam = last.u1, last.u2, last.lam
         if step.exact:

@@ -20,11 +20,16 @@ Interface (duck-typed)::
 
     step.exact                        # True: every step is solved to round-off
     step.name                         # "general" or "decoupled" (the formulation)
-    report = step.solve(active, (u1, u2, lam), check)   # -> StepReport
+    report = step.solve(active, [u1, u2, lam], check)   # -> StepReport
     triple = step.face_solve(active, (u1, u2))           # exact solve (safeguard)
     step.at_roundoff()                # the last solve reached round-off
     step.total_iterations             # CG iterations on this level so far (0: direct)
     step.stats                        # AMG setups, checks, ... of this level
+
+A warm start handed over as a list is emptied by ``solve`` once the step
+has started from it (:func:`release_warm`): the caller keeps no reference,
+so the previous iterate (three vectors of length N) is freed before the
+estimators of the new one run.
 
 The formulations themselves (matrices, right-hand sides, the triple of a
 solution) are :class:`fastmem.linear.GeneralStep` and
@@ -40,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .amg import PCG, amg_preconditioner
+from .amg import PCG, LazyAMG, amg_preconditioner
 from .linear import DecoupledStep
 
 __all__ = [
@@ -62,6 +67,12 @@ class StepReport:
 
     iterations: int = 0
     hit_max: bool = False
+
+
+def release_warm(triple):
+    """Empty a warm start handed over as a list: its arrays are freed once the step has started."""
+    if isinstance(triple, list):
+        triple.clear()
 
 
 def new_stats() -> dict:
@@ -124,6 +135,44 @@ class GeneralCG:
         return self.system.triple(self.active, self.p @ self.cg.x)
 
 
+def gap_matrix(a, active):
+    """``keep A keep + diag(A) on the active set`` (``keep`` = inactive indicator), CSR.
+
+    Bit for bit the matrix scipy makes of
+    ``(diags(~active) @ a @ diags(~active) + diags(a.diagonal() * active)).tocsr()``
+    for a canonical CSR ``a`` (sorted indices, no duplicates, a stored
+    diagonal): the entries of ``a`` in inactive rows and columns and the
+    diagonal of the active rows, in ``a``'s order, stored zeros dropped, the
+    index dtype of ``a`` kept.  Built by one pass of masks over ``a``'s entries
+    instead of three full temporaries of the matrix.
+    """
+    n = a.shape[0]
+    indptr, indices, data = a.indptr, a.indices, a.data
+    inactive = ~active
+    counts = np.diff(indptr)
+    row_active = np.repeat(active, counts)  # bool per entry
+    take = np.repeat(inactive, counts)
+    take &= inactive[indices]
+    take &= data != 0.0
+    # the diagonal of the active rows (a.diagonal() keeps it even where it is zero:
+    # scipy then drops it from the sum, as does the test of its value below)
+    rows = np.repeat(np.arange(n, dtype=indices.dtype), counts)
+    row_active &= indices == rows
+    del rows
+    row_active &= data != 0.0
+    take |= row_active
+    del row_active
+    cum = np.cumsum(take, dtype=indptr.dtype)  # nnz fits a's index dtype
+    new_ptr = np.zeros(n + 1, dtype=indptr.dtype)
+    ends = indptr[1:]
+    nz = ends > 0
+    new_ptr[1:][nz] = cum[ends[nz] - 1]
+    del cum
+    out = sp.csr_matrix((data[take], indices[take], new_ptr), shape=a.shape, copy=False)
+    out.has_sorted_indices = a.has_sorted_indices
+    return out
+
+
 class DecoupledCG:
     """CGs for the sum s (one for the level) and the gap w (one per step), docs/method.md §3.3.
 
@@ -140,12 +189,14 @@ class DecoupledCG:
         a = system.a_ii
         self.a_ii = a
         self.diag = a.diagonal()
-        self.pre_all = amg_preconditioner(a, dict(options.amg_options))
-        stats["amg_setups"] += 1
-        stats["amg_setup_seconds"] += self.pre_all.setup_seconds
+        # the Laplacian's hierarchy, built when first applied (the CG of s, or of w while
+        # the active set is close to empty): on the finest level s usually needs no
+        # iteration, and an unused hierarchy is a setup and ~120 bytes per vertex wasted
+        self.pre_all = LazyAMG(a, options.amg_options, stats)
         self.pre_w = self.pre_all
         self.setup_active = np.zeros(system.interior.size, dtype=bool)
         self.cg_s = None
+        self.cg_w = None
         self.s_done = False
         self.active = None
 
@@ -155,10 +206,13 @@ class DecoupledCG:
         ii = st.interior
         if self.cg_s is None:
             self.cg_s = PCG(self.a_ii, st.rhs_s, (st.mu1 * u1 + st.mu2 * u2)[ii], self.pre_all)
-        keep = sp.diags((~active).astype(np.float64))
-        mat = (keep @ self.a_ii @ keep + sp.diags(self.diag * active)).tocsr()
+        self.cg_w = None  # the previous gap matrix and CG vectors: free them first
+        mat = gap_matrix(self.a_ii, active)
         changed = int(np.count_nonzero(active != self.setup_active))
         if changed > self.options.amg_reuse * active.size:
+            self.pre_w = None  # free the old hierarchy before the new one is built
+            if self.s_done:
+                self.pre_all.release()
             self.pre_w = amg_preconditioner(mat, dict(self.options.amg_options))
             self.stats["amg_setups"] += 1
             self.stats["amg_setup_seconds"] += self.pre_w.setup_seconds
@@ -167,6 +221,13 @@ class DecoupledCG:
         w0 = np.where(active, 0.0, (u1 - u2)[ii])
         self.active = active.copy()
         self.cg_w = PCG(mat, rhs, w0, self._masked)
+
+    def _s_finished(self):
+        """Mark s done (at round-off): free its search vectors and, if unused, its hierarchy."""
+        self.s_done = True
+        self.cg_s.release()
+        if self.pre_w is not self.pre_all:
+            self.pre_all.release()
 
     def _masked(self, r):
         # the hierarchy may belong to an older active set: keep w = 0 on the current one
@@ -184,12 +245,12 @@ class DecoupledCG:
             return done
         if self.cg_s.relative_residual <= EXACT_AMG_RTOL:
             if self.cg_s.at_roundoff(EXACT_AMG_RTOL):
-                self.s_done = True
+                self._s_finished()
                 return done
             self.cg_s.restart()  # the recursive residual drifted: replace it
         if self.cg_s.step():
             return done + 1
-        self.s_done = True  # stuck: at round-off
+        self._s_finished()  # stuck: at round-off
         return done
 
     def solve_exact(self):
@@ -197,7 +258,7 @@ class DecoupledCG:
         n = 0
         if not self.s_done:
             n += self.cg_s.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
-            self.s_done = True
+            self._s_finished()
         return n + self.cg_w.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
 
     @property
@@ -244,6 +305,7 @@ class DirectStep:
 
     def solve(self, active, triple, check) -> StepReport:
         """Solve the step of ``active`` from ``triple`` and hand the result to ``check``."""
+        release_warm(triple)
         check(self.system.solve(active), 0, True)
         return StepReport()
 
@@ -286,7 +348,10 @@ class AMGStep:
 
     def solve(self, active, triple, check) -> StepReport:
         """Solve the step of ``active`` from ``triple`` and hand the result to ``check``."""
-        triple = self.face_solve(active, triple[:2])
+        warm = (triple[0], triple[1])
+        release_warm(triple)
+        triple = self.face_solve(active, warm)
+        del warm
         n = self.cg.iterations
         check(triple, n, False)
         return StepReport(iterations=n)

@@ -118,3 +118,63 @@ def test_shared_pattern_of_weighted_stiffness():
     assert np.shares_memory(a2.indices, scene.stiffness.indices)  # no copy of the pattern
     assert np.shares_memory(a2.indptr, scene.stiffness.indptr)
     np.testing.assert_array_equal((a * 2.5).toarray(), a2.toarray())  # bit for bit
+
+
+@pytest.mark.parametrize("n", [8, 33])
+@pytest.mark.parametrize("frac", [0.0, 0.3, 1.0])
+def test_gap_matrix_is_scipys_expression_bit_for_bit(n, frac):
+    import scipy.sparse as sp
+
+    from fastmem.linear import DecoupledStep
+    from fastmem.steps import gap_matrix
+
+    scene = fm.Scene(fm.Mesh.square(n), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    a = DecoupledStep(scene).a_ii
+    assert (a.data == 0).any()  # stored zeros (right angles): must be dropped as scipy does
+    active = np.random.default_rng(n).random(a.shape[0]) < frac
+    keep = sp.diags((~active).astype(np.float64))
+    ref = (keep @ a @ keep + sp.diags(a.diagonal() * active)).tocsr()
+    got = gap_matrix(a, active)
+    for name in ("indices", "indptr"):
+        x, y = getattr(ref, name), getattr(got, name)
+        assert x.dtype == y.dtype
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(ref.data.view(np.uint64), got.data.view(np.uint64))
+    assert got.has_sorted_indices == ref.has_sorted_indices
+
+
+def test_lazy_hierarchy_and_released_state():
+    """The Laplacian's hierarchy of the decoupled path is built only when applied."""
+    from fastmem.amg import PCG, LazyAMG
+    from fastmem.linear import DecoupledStep
+
+    scene = fm.Scene(fm.Mesh.square(32), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+
+    st = DecoupledStep(scene)
+    stats = {"amg_setups": 0, "amg_setup_seconds": 0.0}
+    lazy = LazyAMG(st.a_ii, fm.amg.AMG_DEFAULTS, stats)
+    cg = PCG(st.a_ii, st.rhs_s, np.zeros(st.rhs_s.size), lazy)
+    assert not lazy.built
+    assert stats["amg_setups"] == 0
+    assert cg.z is None
+    eager = PCG(st.a_ii, st.rhs_s, np.zeros(st.rhs_s.size), fm.amg.amg_preconditioner(st.a_ii))
+    for _ in range(3):
+        assert cg.step()
+        assert eager.step()
+    assert lazy.built
+    assert stats["amg_setups"] == 1
+    np.testing.assert_array_equal(cg.x, eager.x)  # deferred z: bit for bit the same iterates
+    cg.release()
+    assert cg.z is None
+    assert cg.p is None
+    assert not cg.step()
+    assert np.isfinite(cg.true_residual_norm())
+    lazy.release()
+    assert not lazy.built
+
+
+def test_decoupled_finest_level_builds_no_unused_hierarchy():
+    r = fm.solve(fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+    last = r.parameters["solver"]["levels"][-1]
+    if last["s_iterations"] == 0:  # the CG of s never advanced: only the gap's hierarchy
+        assert last["amg_setups"] <= last["newton"]
