@@ -178,3 +178,24 @@ def test_decoupled_finest_level_builds_no_unused_hierarchy():
     last = r.parameters["solver"]["levels"][-1]
     if last["s_iterations"] == 0:  # the CG of s never advanced: only the gap's hierarchy
         assert last["amg_setups"] <= last["newton"]
+
+
+def test_trimmed_hierarchy_cycles_bit_for_bit(monkeypatch):
+    """R as the transpose view of P and no B: the same preconditioner output, bit for bit."""
+    import fastmem.amg as amg
+    from fastmem.linear import DecoupledStep
+    from fastmem.steps import gap_matrix
+
+    st = DecoupledStep(fm.Scene(fm.Mesh.square(96), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+    rng = np.random.default_rng(3)
+    active = rng.random(st.a_ii.shape[0]) < 0.4
+    for mat in (st.a_ii, gap_matrix(st.a_ii, active)):
+        trimmed = amg.amg_preconditioner(mat)
+        with monkeypatch.context() as m:
+            m.setattr(amg, "_trim", lambda ml: None)
+            full = amg.amg_preconditioner(mat)
+        assert all(not hasattr(lv, "B") for lv in trimmed.ml.levels)
+        assert any(lv.R.format == "csc" for lv in trimmed.ml.levels[:-1])
+        for _ in range(2):
+            r = rng.standard_normal(mat.shape[0])
+            np.testing.assert_array_equal(trimmed(r).view(np.uint64), full(r).view(np.uint64))
