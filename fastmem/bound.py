@@ -1,4 +1,4 @@
-r"""The guaranteed a posteriori error bound of any triple (MATH.md sections 5 and 6).
+r"""The guaranteed a posteriori error bound of any triple (docs/method.md §5 and §6).
 
 :func:`estimate` reconstructs the equilibrated fluxes (:mod:`fastmem.flux`),
 evaluates the flux term here and the other terms in :mod:`fastmem.estimators`,
@@ -73,7 +73,7 @@ def _flux_terms_reference(scene, u1, u2, fluxes: Fluxes):
 
 
 def estimate(scene: Scene, u1, u2, lam, r1=None, r2=None) -> Estimate:
-    r"""Guaranteed upper bound :math:`\eta \ge |||u - u_h|||` for ANY triple (MATH.md section 5).
+    r"""Guaranteed upper bound :math:`\eta \ge |||u - u_h|||` for ANY triple (docs/method.md §5).
 
     Parameters
     ----------
@@ -95,7 +95,7 @@ def estimate(scene: Scene, u1, u2, lam, r1=None, r2=None) -> Estimate:
 
     Notes
     -----
-    Proof sketch (MATH.md section 5).  Let :math:`\delta = (u_{2h}-u_{1h})^+`
+    Proof sketch (docs/method.md §5).  Let :math:`\delta = (u_{2h}-u_{1h})^+`
     and :math:`\tilde u = (u_{1h}, u_{2h} - \delta)`, which lies in the convex
     set :math:`K_g` (g >= 0).  Then :math:`|||u-u_h||| \le |||u-\tilde u||| +
     |||\tilde u - u_h|||`, the last term being :math:`(\sum_K

@@ -1,9 +1,9 @@
-r"""Components of the guaranteed a posteriori error bound (MATH.md sections 5 and 6).
+r"""Components of the guaranteed a posteriori error bound (docs/method.md §5 and §6).
 
 The bound :math:`|||u - u_h||| \le \eta` holds for any triple
 ``(u1h, u2h, lam_h)`` (exact, inexact, non-converged or infeasible) with
 ``u1h = g``, ``u2h = 0`` and ``lam_h = 0`` on the boundary, given equilibrated
-fluxes :math:`\sigma_{ih}` (MATH.md section 4).  The flux terms
+fluxes :math:`\sigma_{ih}` (docs/method.md §4).  The flux terms
 :math:`\eta_{F,K,i}` come from the flux reconstruction and are passed in;
 this module computes everything else and combines it:
 
@@ -34,7 +34,7 @@ bounding box of :math:`\Omega`.  Then
     c = \sum_K \eta_{C,K},\\
     \eta &= \frac{a + \sqrt{a^2 + 4c}}{2} + \Big(\sum_K \eta_{nc,K}^2\Big)^{1/2},
 
-and the components used for adaptive stopping (MATH.md section 6)
+and the components used for adaptive stopping (docs/method.md §6)
 
 .. math::
 
@@ -335,8 +335,8 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
 
         - ``eta``: the guaranteed bound
           :math:`(a + \sqrt{a^2 + 4c})/2 + (\sum_K \eta_{nc,K}^2)^{1/2}`;
-        - ``eta_disc``, ``eta_lin``, ``eta_alg``: the components of MATH.md
-          section 6 (:math:`\eta \le \eta_{disc} + \eta_{lin} + \eta_{alg}`);
+        - ``eta_disc``, ``eta_lin``, ``eta_alg``: the components of docs/method.md
+          §6 (:math:`\eta \le \eta_{disc} + \eta_{lin} + \eta_{alg}`);
         - ``a``, ``c``: the coefficients of :math:`x^2 \le a x + c`;
         - ``eta_nc`` :math:`= (\sum_K \eta_{nc,K}^2)^{1/2}`, ``eta_glob1``,
           ``eta_glob2``, ``C_F``;
@@ -353,7 +353,7 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     Notes
     -----
     With :math:`a` and :math:`c` as in the module docstring, the theorem of
-    MATH.md section 5 states :math:`|||u - u_h||| \le \eta` for every
+    docs/method.md §5 states :math:`|||u - u_h||| \le \eta` for every
     :math:`u_h \in X_{gh} \times X_{0h}` and every :math:`\lambda_h \in X_{0h}`
     of any sign, with no assumption on the iterate.
 

@@ -1,4 +1,4 @@
-r"""Equilibrated flux reconstruction (MATH.md section 4).
+r"""Equilibrated flux reconstruction (docs/method.md §4).
 
 For every vertex a and membrane i a mixed RT1 problem on the patch of a is
 solved (:mod:`fastmem.kernels.flux`, parallel over vertices); the sum of the
@@ -16,6 +16,14 @@ Patch conventions (as in the issue and the standard Ern-Vohralik
 construction): interior vertices have zero normal flux on the whole patch
 boundary and a mean-zero multiplier; boundary vertices have free normal flux
 on patch edges that lie on the boundary of the domain and no mean constraint.
+
+Per-triangle tensions (issue 16, docs/heterogeneous.md): the patch problems
+minimise the mu-weighted norm ``||mu_i^(-1/2)(tau_i^a + v)||`` that eta_F
+measures, and on patches in closed contact between membranes of unequal
+tension the contact load ``lam_a psi_a`` is replaced by a redistributed load
+of the same mass (:func:`contact_redistribution`); neither changes the
+guarantee, both make the bound sharper when the tensions differ by orders of
+magnitude.
 
 Data: constant loads enter exactly (no quadrature); per-vertex (P1) and
 callable loads through the moments :math:`\int_K f\lambda_i\lambda_j` computed
@@ -171,12 +179,12 @@ def contact_redistribution(scene, u1, u2, lam):
     non-negative on every triangle (checked once more on the vertex values).
     Equal tensions (:math:`\mu_1 = \mu_2` on the whole patch) are left alone:
     the gain measured there was 1e-6 of eta (manufactured family, mu = (1, 1)),
-    and equal-tension results stay those of MATH.md section 4 as written.
+    and equal-tension results stay those of docs/method.md §4 as written.
 
     Why the bound holds (docs/heterogeneous.md): with :math:`\chi = \sum_a
     \chi^a`, :math:`\nabla\cdot\sigma_{1h} = \Pi f_1 + \chi - \rho_1` and
     :math:`\nabla\cdot\sigma_{2h} = \Pi f_2 - \chi - \rho_2`; the proof of
-    MATH.md section 5 runs with :math:`\ell = \chi + \lambda^- \ge 0` in place
+    docs/method.md §5 runs with :math:`\ell = \chi + \lambda^- \ge 0` in place
     of :math:`\hat\lambda`: :math:`r_1 = f_1 + \ell - \nabla\cdot\sigma_{1h} =
     (f_1 - \Pi f_1) + \rho_1 + \lambda^-` and :math:`r_2 = (f_2 - \Pi f_2) +
     \rho_2 - \lambda^-` are unchanged (:math:`\ell` is P1 per triangle), the
@@ -186,19 +194,25 @@ def contact_redistribution(scene, u1, u2, lam):
     unchanged too.  Only :math:`\eta_F` changes.
     """
     mesh = scene.mesh
-    tri = mesh.triangles
-    area = mesh.areas
-    mu1 = np.broadcast_to(np.asarray(scene.mu1, dtype=np.float64), area.shape)
-    mu2 = np.broadcast_to(np.asarray(scene.mu2, dtype=np.float64), area.shape)
-    unequal = np.bincount(tri[mu1 != mu2].ravel(), minlength=mesh.n_vertices) > 0
+    if np.ndim(scene.mu1) == 0 and np.ndim(scene.mu2) == 0 and scene.mu1 == scene.mu2:
+        return None, None  # equal constant tensions: nothing to redistribute
+    n = mesh.n_vertices
+    mu1 = np.broadcast_to(np.asarray(scene.mu1, dtype=np.float64), (mesh.n_triangles,))
+    mu2 = np.broadcast_to(np.asarray(scene.mu2, dtype=np.float64), (mesh.n_triangles,))
+    unequal = np.bincount(mesh.triangles[mu1 != mu2].ravel(), minlength=n) > 0
     cand = _closed_contact_vertices(mesh, u1 - u2) & unequal
     if not cand.any():
         return None, None
+    # only the triangles of candidate patches matter (all of them are here)
+    sub = np.flatnonzero(cand[mesh.triangles].any(axis=1))
+    tri = mesh.triangles[sub]
+    area = mesh.areas[sub]
+    mu1, mu2 = mu1[sub], mu2[sub]
     mij = area[:, None, None] / 12.0 * (1.0 + np.eye(3))[None]  # int lambda_i lambda_j
     mom = []
     for i in (1, 2):
         m = load_moments(scene, i)
-        mom.append(float(scene.f1 if i == 1 else scene.f2) * mij if m is None else m)
+        mom.append(float(scene.f1 if i == 1 else scene.f2) * mij if m is None else m[sub])
     # (psi_a chi*, lambda_j)_K for a = triangles[K, i]: (M, 3, 3)
     glued = (mu1[:, None, None] * mom[1] - mu2[:, None, None] * mom[0]) / (mu1 + mu2)[:, None, None]
     # vertex values of its L2 projection onto P1(K), M_K^-1 = (12 / |K|) (I - 1 1^T / 4),
@@ -206,7 +220,6 @@ def contact_redistribution(scene, u1, u2, lam):
     pieces = 12.0 / area[:, None, None] * (glued - 0.25 * glued.sum(axis=2, keepdims=True))
     pieces = np.maximum(pieces, 0.0)
     bmass = mesh.lumped_mass
-    n = len(bmass)
     piece_mass = pieces.sum(axis=2) * (area[:, None] / 3.0)  # (M, 3)
     total = np.bincount(tri.ravel(), weights=piece_mass.ravel(), minlength=n)
     # the mass correction gamma_a m_K psi_a goes where it costs least: the defect
@@ -214,10 +227,10 @@ def contact_redistribution(scene, u1, u2, lam):
     # = mu_1 mu_2 / (mu_1 + mu_2) (all on the stiff side of an interface)
     m_k = mu1 * mu2 / (mu1 + mu2)
     weight = np.bincount(tri.ravel(), weights=np.repeat(m_k * area / 3.0, 3), minlength=n)
-    gamma = (bmass * lam - total) / weight
+    gamma = np.divide(bmass * lam - total, weight, out=np.zeros(n), where=weight > 0.0)
     # the piece of a on K is >= 0 iff its value at a is
     own = pieces[:, [0, 1, 2], [0, 1, 2]] + gamma[tri] * m_k[:, None]  # (M, 3)
-    negative = np.bincount(tri[own < 0.0], minlength=len(bmass)) > 0
+    negative = np.bincount(tri[own < 0.0], minlength=n) > 0
     flags = cand & ~negative
     if not flags.any():
         return None, None
@@ -255,7 +268,7 @@ def contact_load(scene, fluxes, rho1, lam_minus) -> np.ndarray:
 
 
 def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Fluxes:
-    """Equilibrated RT1 fluxes ``sigma_1h``, ``sigma_2h`` of any triple (MATH.md section 4).
+    """Equilibrated RT1 fluxes ``sigma_1h``, ``sigma_2h`` of any triple (docs/method.md §4).
 
     Parameters
     ----------
@@ -268,7 +281,7 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
     redistribute : bool
         Redistribute the contact load between the membranes on patches in
         closed contact (default; see Notes).  ``False``: the contact load of
-        patch a is ``lam_a psi_a`` everywhere (MATH.md section 4 as written).
+        patch a is ``lam_a psi_a`` everywhere (docs/method.md §4 as written).
 
     Returns
     -------

@@ -235,3 +235,31 @@ def test_bound_holds_for_extreme_constant_tensions(mu):
         lam[ii] += 0.1 * rng.standard_normal(ii.size)
         est = fm.estimate(scene, u1, u2, lam)
         assert est.eta >= ms.energy_error(mesh, u1, u2)
+
+
+#: Checkerboard effectivities at n = 16 against a reference 3 refinements finer,
+#: measured when the mu-weighted reconstruction and the redistributed contact
+#: load landed (issue 16; before: 1.32, 2.84, 16.3 and 9.7): the upper limits are
+#: the measured values plus 1 %, never to be loosened.  The low-mu cases are far
+#: from the target 1.5: the floppy membrane's unresolved boundary layer, see
+#: docs/heterogeneous.md.
+CHECKERBOARD_EFFECTIVITY = {
+    (1e3, (-1.0, 1.0)): 1.3169,
+    (1e3, (-4.0, 2.0)): 2.8314,
+    (1e-3, (-4.0, 2.0)): 15.5932,
+    (1e-3, (-1.0, 1.0)): 9.5222,
+}
+
+
+@pytest.mark.parametrize(("c", "f"), list(CHECKERBOARD_EFFECTIVITY))
+def test_checkerboard_effectivity(c, f):
+    mesh = fm.Mesh.square(16)
+    mu1 = _checkerboard(mesh, c)
+
+    def build(m, k=1):
+        return fm.Scene(m, mu=(np.repeat(mu1, k), 1.0), f=f, g=0.1)
+
+    err = _reference_error(mesh, 3, build)
+    r = fm.solve(build(mesh), method="exact", estimate=True)
+    eff = r.eta / err(r.u1, r.u2)
+    assert 1.0 <= eff <= 1.01 * CHECKERBOARD_EFFECTIVITY[(c, f)]
