@@ -32,6 +32,10 @@ BENCHMARKS = (
     "unstructured",
     "direct_ordering",
     "adaptivity",
+    "effectivity",
+    "memory",
+    "coldstart",
+    "sweep",
 )
 
 
