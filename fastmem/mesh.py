@@ -356,8 +356,7 @@ class Mesh:
     def lumped_mass(self) -> np.ndarray:
         """Lumped P1 mass ``B_a = |omega_a| / 3``, shape (N,)."""
         if "lumped_mass" not in self._cache:
-            w = np.repeat(self.areas / 3.0, 3)
-            b = np.bincount(self.triangles.ravel(), weights=w, minlength=self.n_vertices)
+            b = _kt.lumped_mass(self.triangles, self.areas, self.n_vertices)
             self._cache["lumped_mass"] = _readonly(b)
         return self._cache["lumped_mass"]
 
@@ -372,9 +371,17 @@ class Mesh:
     def _topology(self) -> dict:
         if "edges" in self._cache:
             return self._cache
+        check_index_limit(self.n_vertices, self.n_triangles)
+        self._set_topology(*_kt.edge_topology(self.triangles, self.n_vertices))
+        return self._cache
+
+    def _set_topology(self, edges, tri_edges, et, counts, fwd_count) -> None:
+        """Check and cache the arrays of :func:`fastmem.kernels.topology.edge_topology`.
+
+        Also the entry point of a topology derived otherwise (a refined mesh's, from its
+        parent's: :func:`fastmem.refine.refine_marked`); the edge checks run the same.
+        """
         n = self.n_vertices
-        check_index_limit(n, self.n_triangles)
-        edges, tri_edges, et, counts, fwd_count = _kt.edge_topology(self.triangles, n)
         if (counts > 2).any():
             e = int(np.flatnonzero(counts > 2)[0])
             raise MeshError(
@@ -408,7 +415,6 @@ class Mesh:
             boundary_edges=_readonly(boundary_edges),
             boundary_vertex_mask=_readonly(bcount > 0),
         )
-        return self._cache
 
     @property
     def edges(self) -> np.ndarray:
@@ -454,14 +460,13 @@ class Mesh:
 
     def _patches(self) -> dict:
         if "patch_ptr" not in self._cache:
-            flat = self.triangles.ravel()
-            order = np.argsort(flat, kind="stable")
             ptr = np.zeros(self.n_vertices + 1, dtype=np.int64)
             np.cumsum(self._cache["vertex_degree"], out=ptr[1:])
+            tris, local = _kt.vertex_patches(self.triangles, ptr)  # a counting sort, O(N + M)
             self._cache.update(
                 patch_ptr=_readonly(ptr),
-                patch_triangles=_readonly(order // 3),
-                patch_local=_readonly(order % 3),
+                patch_triangles=_readonly(tris),
+                patch_local=_readonly(local),
             )
         return self._cache
 

@@ -69,7 +69,8 @@ import numpy as np
 
 from .errors import DataError, InputTypeError, ParameterError
 from .kernels import nvb as _kn
-from .mesh import Mesh
+from .kernels import topology as _kt_topology
+from .mesh import Mesh, check_index_limit
 
 __all__ = ["Refinement", "dorfler_mark", "refine_marked"]
 
@@ -305,7 +306,24 @@ def refine_marked(mesh: Mesh, marked, refinement_edge=None, *, validate: bool = 
     vertices[:n] = v
     np.add(v[parent_edges[:, 0]], v[parent_edges[:, 1]], out=vertices[n:])
     vertices[n:] *= 0.5
-    fine = Mesh(vertices, children, orientation="raise", validate=validate)
+    fine = Mesh(vertices, children, orientation="raise", validate=False)
+    if validate:  # from scratch: the duplicate-vertex search and the edge checks
+        fine._check_duplicate_vertices()
+        fine._topology()
+    else:  # derived from the parent's edges (the same arrays); the edge checks still run
+        check_index_limit(fine.n_vertices, fine.n_triangles)
+        fine._set_topology(
+            *_kt_topology.refined_edge_topology(
+                children,
+                parent,
+                mesh.n_triangles,
+                edges,
+                mesh.edge_triangles,
+                edge_vertex,
+                n,
+                vertices.shape[0],
+            )
+        )
     fine._cache[_NVB_KEY] = True
     transfer = Refinement(
         n_old_vertices=n,

@@ -268,6 +268,45 @@ def test_successive_refinements_keep_a_valid_nvb_mesh(spec, seed, fraction, defa
         assert angle >= 0.5 * alpha0 * (1 - 1e-9)
 
 
+_TOPOLOGY = ("edges", "triangle_edges", "edge_triangles", "boundary_edges", "boundary_vertex_mask")
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(MESHES, st.integers(0, 2**31 - 1), st.sampled_from([0.01, 0.1, 0.3, 1.0]))
+def test_derived_topology_equals_the_topology_from_scratch(spec, seed, fraction):
+    """validate=False derives the edges from the parent's: the same arrays, same dtypes."""
+    from fastmem.kernels.topology import edge_topology
+
+    cur = make_mesh(*spec)
+    rng = np.random.default_rng(seed)
+    for _ in range(5):
+        if cur.n_triangles > 5000:
+            break
+        marked = rng.random(cur.n_triangles) < fraction
+        fast, _ = refine_marked(cur, marked, validate=False)
+        full, _ = refine_marked(cur, marked, validate=True)
+        edges, tri_edges, et, counts, forward = edge_topology(fast.triangles, fast.n_vertices)
+        for name, want in (("edges", edges), ("triangle_edges", tri_edges), ("edge_triangles", et)):
+            got = getattr(fast, name)
+            assert got.dtype == want.dtype, name
+            assert_array_equal(got, want, err_msg=name)
+        for name in _TOPOLOGY:
+            assert getattr(fast, name).dtype == getattr(full, name).dtype, name
+            assert_array_equal(getattr(fast, name), getattr(full, name), err_msg=name)
+        # patches (counting sort) and lumped mass (kernel): the NumPy definitions, bit for bit
+        order = np.argsort(fast.triangles.ravel(), kind="stable")
+        assert_array_equal(fast.patch_triangles, order // 3)
+        assert_array_equal(fast.patch_local, order % 3)
+        assert_array_equal(np.diff(fast.patch_ptr), np.bincount(fast.triangles.ravel()))
+        lumped = np.bincount(
+            fast.triangles.ravel(),
+            weights=np.repeat(fast.areas / 3.0, 3),
+            minlength=fast.n_vertices,
+        )
+        assert_array_equal(fast.lumped_mass, lumped)
+        cur = fast
+
+
 def test_refine_all_twice_on_compatible_mesh_halves_every_edge():
     """Marking all twice on a mesh of compatible pairs gives the red refinement's vertices."""
     mesh = fm.Mesh.square(4, diagonal="right")  # hypotenuses shared: compatible
