@@ -287,10 +287,10 @@ BASE_BYTES = 300_000_000
 
 #: Peak resident bytes per vertex of a solve with the bound on a mesh with about two
 #: triangles per vertex (mesh -> scene -> fm.solve -> result.save; bench/memory.py,
-#: default scene: 1720 B/vertex above BASE_BYTES at n = 2048, 2020 at n = 1024 where
+#: default scene: 1450 B/vertex above BASE_BYTES at n = 2048, 1750 at n = 1024 where
 #: freed heap memory is not returned to the system), with a margin.  "exact" adds the
 #: sparse factorisation (about 3 GB per million vertices, see :data:`EXACT_MAX_VERTICES`).
-SOLVE_BYTES_PER_VERTEX = {"inexact": 2100, "exact-amg": 2100, "exact": 5100}
+SOLVE_BYTES_PER_VERTEX = {"inexact": 1800, "exact-amg": 1800, "exact": 4800}
 
 #: Part of the peak due to the flux reconstruction (RT1 coefficients of both membranes,
 #: 256 bytes per vertex, and its work arrays): not needed with ``estimate=False``.
