@@ -286,6 +286,12 @@ def rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, mass_out, div_out, tau_o
         r7 = mass_out[7, c]
         mass_out[6, c] = q00 * r6 + q10 * r7
         mass_out[7, c] = q01 * r6 + q11 * r7
+    # The column and row passes round the two off-diagonal copies differently (by an
+    # ulp or so once LLVM no longer reassociates): mirror the upper triangle so that
+    # the mass matrix is symmetric bit for bit, as the patch Cholesky assumes.
+    for i in range(8):
+        for j in range(i + 1, 8):
+            mass_out[j, i] = mass_out[i, j]
     for q in range(3):
         for j in range(6):
             div_out[q, j] = sg * _DIV[f, q, j]
