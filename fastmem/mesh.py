@@ -50,11 +50,12 @@ integral values (no silent truncation), and anything that is not an array
 :class:`~fastmem.errors.DataError`.  The mesh never aliases the caller's
 arrays, and its own arrays are read-only.
 
-Derived index arrays: ``edges`` is int32 (the 32-bit index path: at most
-:data:`INDEX_LIMIT` = 2**31 - 1 vertices and 715,827,882 triangles, refused
-with :class:`~fastmem.errors.MeshError` above; the n = 4096 square has 33.5M
-triangles); ``triangle_edges``, ``edge_triangles`` and the patch arrays are
-int64.
+Derived index arrays use the 32-bit index path (at most :data:`INDEX_LIMIT` =
+2**31 - 1 vertices and 715,827,882 triangles, refused with
+:class:`~fastmem.errors.MeshError` above; the n = 4096 square has 33.5M
+triangles): ``edges``, ``triangle_edges``, ``edge_triangles`` and
+``patch_triangles`` are int32, ``patch_local`` (0, 1 or 2) is int8, ``patch_ptr``
+int64; 150 bytes per vertex less than int64 throughout.
 """
 
 from __future__ import annotations
@@ -282,7 +283,6 @@ class Mesh:
         self.triangles = _readonly(t)
         self._cache["areas"] = _readonly(0.5 * area2)
         self._cache["diameters"] = _readonly(np.sqrt(h2))
-        self._cache["vertex_degree"] = counts
         if validate:
             self._check_duplicate_vertices()
             self._topology()  # runs the edge checks
@@ -410,8 +410,8 @@ class Mesh:
             )
         self._cache.update(
             edges=_readonly(edges),
-            triangle_edges=_readonly(tri_edges),
-            edge_triangles=_readonly(et),
+            triangle_edges=_readonly(tri_edges.astype(np.int32, copy=False)),
+            edge_triangles=_readonly(et.astype(np.int32, copy=False)),
             boundary_edges=_readonly(boundary_edges),
             boundary_vertex_mask=_readonly(bcount > 0),
         )
@@ -426,12 +426,12 @@ class Mesh:
 
     @property
     def triangle_edges(self) -> np.ndarray:
-        """Global edge index of each local edge (M, 3); local edge i is opposite local vertex i."""
+        """Global edge (int32) of each local edge (M, 3); local edge i is opposite vertex i."""
         return self._topology()["triangle_edges"]
 
     @property
     def edge_triangles(self) -> np.ndarray:
-        """The one or two triangles of each edge (E, 2); -1 marks a missing neighbour."""
+        """The one or two triangles (int32) of each edge (E, 2); -1 marks a missing neighbour."""
         return self._topology()["edge_triangles"]
 
     @property
@@ -461,7 +461,8 @@ class Mesh:
     def _patches(self) -> dict:
         if "patch_ptr" not in self._cache:
             ptr = np.zeros(self.n_vertices + 1, dtype=np.int64)
-            np.cumsum(self._cache["vertex_degree"], out=ptr[1:])
+            # vertex degrees: recounted here (O(M)) rather than kept from __init__ (8 B/vertex)
+            np.cumsum(np.bincount(self.triangles.ravel(), minlength=self.n_vertices), out=ptr[1:])
             tris, local = _kt.vertex_patches(self.triangles, ptr)  # a counting sort, O(N + M)
             self._cache.update(
                 patch_ptr=_readonly(ptr),
@@ -477,12 +478,12 @@ class Mesh:
 
     @property
     def patch_triangles(self) -> np.ndarray:
-        """Triangles of patch a: ``patch_triangles[patch_ptr[a]:patch_ptr[a+1]]`` (sorted)."""
+        """Triangles (int32) of patch a: ``patch_triangles[patch_ptr[a]:patch_ptr[a+1]]``."""
         return self._patches()["patch_triangles"]
 
     @property
     def patch_local(self) -> np.ndarray:
-        """Local index (0, 1, 2) of the patch vertex in each patch triangle (same layout)."""
+        """Local index (0, 1, 2; int8) of the patch vertex in each patch triangle (same layout)."""
         return self._patches()["patch_local"]
 
     def _check_duplicate_vertices(self) -> None:
@@ -632,7 +633,7 @@ class Mesh:
         v, t, te = self.vertices, self.triangles, self.triangle_edges
         n = self.n_vertices
         mid = 0.5 * (v[self.edges[:, 0]] + v[self.edges[:, 1]])
-        m0, m1, m2 = (te[:, k] + n for k in range(3))
+        m0, m1, m2 = (te[:, k].astype(np.int64) + n for k in range(3))  # te is int32
         v0, v1, v2 = t[:, 0], t[:, 1], t[:, 2]
         children = np.stack(
             [

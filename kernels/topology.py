@@ -12,9 +12,10 @@ dozen passes over (3M,) arrays.
 Index dtypes: the half-edge arrays of the pass and the returned ``edges``,
 ``counts`` and ``forward`` are int32 (half the memory of int64: the pass's
 peak drops from 150 to 78 bytes per vertex, the retained ``edges`` from 48 to
-24), so the caller must keep ``3 M`` and ``n`` below ``2**31``
-(:data:`fastmem.mesh.INDEX_LIMIT` checks it); ``tri_edges`` and
-``edge_triangles`` stay int64 (the flux kernels take them as they are).
+24), and so are ``tri_edges`` and ``edge_triangles`` (24 instead of 48 bytes per
+vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
+(:data:`fastmem.mesh.INDEX_LIMIT` checks it).  The patch arrays of
+:func:`vertex_patches` are int32 (triangles) and int8 (local index 0, 1, 2).
 """
 
 import numba
@@ -34,9 +35,9 @@ def edge_topology(t, n):
     -------
     edges : int32 (E, 2)
         Vertex pairs, ``edges[:, 0] < edges[:, 1]``, in lexicographic order.
-    tri_edges : int64 (M, 3)
+    tri_edges : int32 (M, 3)
         Edge of each local edge (local edge ``i`` is opposite vertex ``i``).
-    edge_triangles : int64 (E, 2)
+    edge_triangles : int32 (E, 2)
         The first two triangles of each edge in half-edge order (-1: none).
     counts : int32 (E,)
         Triangles per edge (1 on the boundary, 2 inside; more is non-manifold).
@@ -89,10 +90,10 @@ def edge_topology(t, n):
             if p == ptr[v] or hi[order[p]] != hi[order[p - 1]]:
                 ne += 1
     edges = np.empty((ne, 2), dtype=np.int32)
-    et = np.full((ne, 2), -1, dtype=np.int64)
+    et = np.full((ne, 2), -1, dtype=np.int32)
     counts = np.zeros(ne, dtype=np.int32)
     forward = np.zeros(ne, dtype=np.int32)
-    tri_edges = np.empty((m, 3), dtype=np.int64)
+    tri_edges = np.empty((m, 3), dtype=np.int32)
     e = -1
     for v in range(n):
         for p in range(ptr[v], ptr[v + 1]):
@@ -190,10 +191,10 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
         ptr[v + 1] += ptr[v]
     ne = ptr[n]
     edges = np.empty((ne, 2), dtype=np.int32)
-    et = np.empty((ne, 2), dtype=np.int64)
+    et = np.empty((ne, 2), dtype=np.int32)
     counts = np.empty(ne, dtype=np.int32)
     forward = np.empty(ne, dtype=np.int32)
-    tri_edges = np.empty((m, 3), dtype=np.int64)
+    tri_edges = np.empty((m, 3), dtype=np.int32)
     remap = np.full(e_old, -1, dtype=np.int64)
     fill = ptr[:-1].copy()
     for e in range(e_old):
@@ -270,12 +271,13 @@ def vertex_patches(t, ptr):
 
     ``ptr`` (N + 1,) is the prefix sum of the vertex degrees.  A counting sort,
     O(N + M): the same order as a stable argsort of ``t.ravel()`` (triangles of a
-    patch ascending).  Returns ``patch_triangles`` and ``patch_local``, int64.
+    patch ascending).  Returns ``patch_triangles`` (int32: ``M < 2**31``, checked by
+    :data:`fastmem.mesh.INDEX_LIMIT`) and ``patch_local`` (int8: 0, 1 or 2).
     """
     m = t.shape[0]
     fill = ptr[:-1].copy()
-    tris = np.empty(3 * m, dtype=np.int64)
-    local = np.empty(3 * m, dtype=np.int64)
+    tris = np.empty(3 * m, dtype=np.int32)
+    local = np.empty(3 * m, dtype=np.int8)
     for k in range(m):
         for i in range(3):
             v = t[k, i]
