@@ -14,7 +14,7 @@ import numpy as np
 
 from .errors import DataError, InputTypeError, ParameterError
 from .estimators import _oscillation, combine, global_terms, local_terms
-from .flux import Fluxes, _mu_array, reconstruct
+from .flux import Fluxes, _mu_array, cross_point_correction, reconstruct
 from .kernels import flux as _kf
 from .linear import residuals
 from .quadrature import quadrature_points, triangle_rule
@@ -157,6 +157,9 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     """
     t0 = time.perf_counter()
     fluxes = reconstruct(scene, u1, u2, lam, r1, r2)
+    # divergence-free correction at checkerboard-like vertices (issue 16): same
+    # divergence, still H(div), eta_F no larger (proof in cross_point_correction)
+    fluxes = cross_point_correction(scene, u1, u2, fluxes)
     t1 = time.perf_counter()
     eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
     if local is None:
