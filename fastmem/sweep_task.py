@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ArchiveError, InputTypeError
+from .sweep_claims import CLAIMS_DIR, LEASE, acquire
 from .sweep_engine import _host
 from .sweep_grid import _FLOATS, _INTS, RUNS_DIR, _key
 
@@ -38,6 +39,7 @@ class _Job:
     solve_options: dict
     log: str
     threads: dict  # host -> Numba threads; "*" -> fixed count for every host
+    lease: float = LEASE  # seconds after which an untouched claim of another machine is stale
 
 
 def _summary(result, name: str, params: dict, archive: str) -> dict:
@@ -172,17 +174,29 @@ def _run_job(job: _Job) -> dict:
     """Solve one run and write its archive (the task a worker executes); return its row.
 
     A run whose archive is already valid is not solved again (a retry after a
-    worker died once the archive was written).  Exceptions of the factory, the
+    worker died once the archive was written), and a run claimed by a live task
+    (fastmem.sweep_claims: an orphan of a dead client, still executing) is
+    waited for instead of solved a second time.  Exceptions of the factory, the
     solve or the write are returned as a failed row with their text.
     """
+    archive = Path(job.archive)
+    rel = f"{RUNS_DIR}/{archive.name}"
+    claims = archive.parent.parent / CLAIMS_DIR
+    state, held = acquire(claims, job.name, lambda: _valid_archive(archive, job.params), job.lease)
+    if state == "done":
+        return _summary(held, job.name, job.params, rel) | {"solved": False}
+    holder = [held]  # the claim released at the end (replaced if this one is superseded)
+    try:
+        return _solve_claimed(job, archive, rel, claims, holder)
+    finally:
+        holder[0].release()
+
+
+def _solve_claimed(job: _Job, archive: Path, rel: str, claims: Path, holder: list) -> dict:
+    """Make, solve and save a run whose claim (``holder[0]``) this task holds; return its row."""
     from .scene import Scene
     from .solver import solve
 
-    archive = Path(job.archive)
-    rel = f"{RUNS_DIR}/{archive.name}"
-    done = _valid_archive(archive, job.params)
-    if done is not None:
-        return _summary(done, job.name, job.params, rel) | {"solved": False}
     _set_task_threads(job.threads)
     t0 = time.perf_counter()
     stage = "make_scene"
@@ -198,6 +212,14 @@ def _run_job(job: _Job) -> dict:
         result.timings["scene"] = t_scene
         result.parameters["sweep"] = {"params": job.params, "run": job.name}
         stage = "save"
+        if holder[0].superseded():  # our heartbeat stalled beyond the lease: wait for the owner
+            holder[0].release()
+            state, held = acquire(
+                claims, job.name, lambda: _valid_archive(archive, job.params), job.lease
+            )
+            if state == "done":
+                return _summary(held, job.name, job.params, rel) | {"solved": False}
+            holder[0] = held
         done = _valid_archive(archive, job.params)  # written meanwhile by an orphaned task?
         if done is not None:
             return _summary(done, job.name, job.params, rel) | {"solved": False}

@@ -20,6 +20,7 @@ The study folder::
     study/sweep-index.h5     the index: one row per run (rewritten atomically)
     study/runs/<name>.h5     one fastmem result archive per finished run
     study/archive-writes.log one JSON line per archive written (audit of "none twice")
+    study/claims/            one claim file per run and attempt (fastmem.sweep_claims)
     study/.sweep.lock        held (flock) by the client running the sweep
 
 Rules (docs/sweeps.md has the reasons):
@@ -37,6 +38,11 @@ Rules (docs/sweeps.md has the reasons):
   submits only the others; the task checks again before solving and before
   writing, so that a task retried after its worker died once the archive was
   written does not solve it again.
+* **Once.** Before making its scene a task claims its run (a claim file in
+  ``claims/``, see :mod:`fastmem.sweep_claims`); a task that finds a live
+  claim waits for that owner's archive instead of solving.  This covers the
+  orphans of a dead client on an existing cluster, which dask keeps executing
+  while it hands the restarted sweep's runs to other workers.
 * **Failures.** A factory or solve that raises is recorded (status
   ``failed``, the exception text in ``error``, the traceback in the index)
   and the other runs go on.  A worker that dies (killed, out of memory) has
