@@ -76,6 +76,28 @@ class AdaptiveStep(AMGStep):
             self.mass = _mass_matrix(system.scene)
             self.c_f = friedrichs_constant(system.scene.mesh)
 
+    def spill(self):
+        """Before a flux reconstruction: free the matrices it does not need.
+
+        The system matrices of the CG (:meth:`fastmem.steps.DecoupledCG.spill`,
+        :meth:`fastmem.steps.GeneralCG.spill`) and the consistent mass matrix
+        (56 bytes per vertex, cached on the scene by :mod:`fastmem.estimators`,
+        assembled again there on its next use).  Called by
+        :class:`fastmem.newton.Checks` right before it reconstructs the flux;
+        :meth:`restore` rebuilds all of it bit for bit when the level goes on, so
+        only the memory peak changes, not a result.
+        """
+        self.cg.spill()
+        if self.decoupled:
+            self.mass = None
+        self.cg.system.scene._cache.pop("M", None)
+
+    def restore(self):
+        """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
+        self.cg.restore()
+        if self.decoupled and self.mass is None:
+            self.mass = _mass_matrix(self.cg.system.scene)
+
     def _skip(self, last, i, budget):
         """Return True when the inner criterion cannot plausibly hold yet (skip the check)."""
         if last is None or self.check_all or i >= self.options.max_inner:
@@ -106,12 +128,14 @@ class AdaptiveStep(AMGStep):
                 continue
             self.stats["checks"] += 1
             verdict = check(cg.triple(), i, stuck or cg.at_roundoff())
-            if self.decoupled:
-                s_share = cg.s_share(self.mass, self.c_f)
+            if not verdict.outer_ok:  # the level goes on: rebuild what a flux spilled
+                self.restore()
             last = (i, verdict.eta_alg, cg.residual())
             budget = verdict.budget
             if verdict.stop_inner:
                 break
+            if self.decoupled:
+                s_share = cg.s_share(self.mass, self.c_f)
             if i >= opts.max_inner:
                 logger.warning(
                     "inexact linear step: %d CG iterations without meeting the algebraic "

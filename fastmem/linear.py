@@ -113,15 +113,24 @@ class GeneralStep(_Base):
         super().__init__(scene)
         ii = self.interior
         a1 = scene.weighted_stiffness(1)
-        a2 = scene.weighted_stiffness(2)
         self.a1_ii = a1[ii][:, ii].tocsr()
         f1, f2 = scene.loads
         lift = a1 @ self.g_full  # u1 = g on the boundary, u2 = 0
         self.rhs1 = f1[ii] - lift[ii]
         self.rhs2 = f2[ii].copy()
         # A2_II only enters K (not kept: 84 bytes per vertex)
-        self.k_ii = sp.block_diag([self.a1_ii, a2[ii][:, ii].tocsr()], format="csr")
+        self.k_ii = self.reduced_stiffness()
         self._lu_empty = None
+
+    def reduced_stiffness(self):
+        """Return ``K_II = diag(A1_II, A2_II)``, CSR (a new matrix, the same bits each call).
+
+        The step's :attr:`k_ii`; rebuilt by :meth:`fastmem.steps.GeneralCG.restore` after
+        a flux reconstruction that ran without it.
+        """
+        ii = self.interior
+        a2_ii = self.scene.weighted_stiffness(2)[ii][:, ii].tocsr()
+        return sp.block_diag([self.a1_ii, a2_ii], format="csr")
 
     def prolongation(self, active):
         """Build the injection P from reduced unknowns (u1 on I, u2 on inactive) to (u1, u2)."""
@@ -178,7 +187,7 @@ class DecoupledStep(_Base):
         self.mu1, self.mu2 = mu1, mu2
         self.kappa = 1.0 / mu1 + 1.0 / mu2
         a = scene.stiffness
-        self.a_ii = a[ii][:, ii].tocsr()
+        self.a_ii = self.interior_laplacian()
         f1, f2 = scene.loads
         lift = a @ self.g_full  # A restricted to boundary columns applied to g
         # s = mu1 g on the boundary; w = g on the boundary.
@@ -187,6 +196,15 @@ class DecoupledStep(_Base):
         self.rhs_s = (f1 + f2)[ii] - mu1 * lift[ii]
         self._lu = None
         self._s = None
+
+    def interior_laplacian(self):
+        """Return ``A`` restricted to the interior vertices, CSR (new, the same bits each call).
+
+        The step's :attr:`a_ii`; rebuilt by :meth:`fastmem.steps.DecoupledCG.restore` after
+        a flux reconstruction that ran without it.
+        """
+        ii = self.interior
+        return self.scene.stiffness[ii][:, ii].tocsr()
 
     @property
     def s_boundary(self):

@@ -146,6 +146,8 @@ class Checks:
         self.k = 0
         self.active = None
         self.t_level = time.perf_counter()
+        # called before each flux reconstruction (AdaptiveStep.spill; it restores itself)
+        self.before_flux = step.spill if isinstance(step, AdaptiveStep) else None
 
     def _cheap(self, u1, u2, lam, r1, r2):
         # no data oscillation here: it enters eta_disc only (added by evaluate() with the flux)
@@ -158,6 +160,8 @@ class Checks:
 
     def _flux(self, last):
         t0 = time.perf_counter()
+        if self.before_flux is not None:  # the inexact step frees what the flux does not need
+            self.before_flux()
         u = (last.u1, last.u2, last.lam, last.r1, last.r2)
         last.estimate = evaluate(self.scene, *u, local=last.local, glob=last.glob)
         self.n_flux += 1

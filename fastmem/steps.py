@@ -109,6 +109,27 @@ class GeneralCG:
         """One CG iteration; returns 0 when CG cannot proceed (at round-off)."""
         return 1 if self.cg.step() else 0
 
+    def spill(self):
+        """Free ``K_II`` and the reduced matrix while the flux is reconstructed.
+
+        About 260 bytes per vertex that the flux does not need, rebuilt bit for bit by
+        :meth:`restore` when the iteration goes on (see :meth:`DecoupledCG.spill`).
+        """
+        if self.system.k_ii is None:
+            return
+        self.system.k_ii = None
+        if self.active is not None:
+            self.mat = self.cg.a = None
+
+    def restore(self):
+        """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
+        st = self.system
+        if st.k_ii is not None:
+            return
+        st.k_ii = st.reduced_stiffness()
+        if self.active is not None:
+            self.mat = self.cg.a = (self.p.T @ st.k_ii @ self.p).tocsr()
+
     def solve_exact(self):
         """Iterate to round-off; return the CG iterations done (all CGs)."""
         return self.cg.solve(EXACT_AMG_RTOL, 10 * self.options.max_inner)
@@ -221,6 +242,35 @@ class DecoupledCG:
         w0 = np.where(active, 0.0, (u1 - u2)[ii])
         self.active = active.copy()
         self.cg_w = PCG(mat, rhs, w0, self._masked)
+
+    def spill(self):
+        """Free the interior Laplacian and the gap matrix while the flux is reconstructed.
+
+        The flux needs only the mesh, the data and the triple; these two matrices (about
+        130 bytes per vertex) are rebuilt bit for bit by :meth:`restore`, which the
+        inexact step calls when the iteration goes on after the check
+        (:class:`fastmem.adaptive.AdaptiveStep`).  On the accepted (last) check of a
+        level they are never rebuilt.  The AMG hierarchies are kept (a rebuild costs a
+        setup).
+        """
+        if self.a_ii is None:
+            return
+        self.a_ii = self.system.a_ii = self.pre_all.matrix = None
+        if self.cg_s is not None:
+            self.cg_s.a = None
+        if self.cg_w is not None:
+            self.cg_w.a = None
+
+    def restore(self):
+        """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
+        if self.a_ii is not None:
+            return
+        a = self.system.a_ii = self.system.interior_laplacian()
+        self.a_ii = self.pre_all.matrix = a
+        if self.cg_s is not None:
+            self.cg_s.a = a
+        if self.cg_w is not None:
+            self.cg_w.a = gap_matrix(a, self.active)
 
     def _s_finished(self):
         """Mark s done (at round-off): free its search vectors and, if unused, its hierarchy."""
