@@ -278,3 +278,64 @@ def test_cli_prints_one_line_per_mesh(tmp_path, capsys):
     assert "adaptivity" in capsys.readouterr().out
     assert main(["run", "--n", "8", "--tol", "0.05", "--no-estimate"]) != 0
     assert "--tol/--rtol need the error bound" in capsys.readouterr().err
+
+
+def test_a_near_miss_is_solved_on_before_refining(monkeypatch):
+    """A mesh missing the target only by eta_alg + eta_lin gets a tighter solve, same mesh."""
+    import fastmem.afem as afem
+
+    scene = _default(fm.Mesh.lshape(8))
+    monkeypatch.setattr(afem, "FINAL_GAMMA", None)
+    plain = fm.solve(scene, tol=2e-3, max_levels=12).adaptivity
+    monkeypatch.setattr(afem, "FINAL_GAMMA", 0.03)
+    eta, disc = plain["eta"], plain["eta_disc"]
+    solver_part = plain["eta_alg"] + plain["eta_lin"]
+    n = plain["n_vertices"]
+    hints = np.r_[np.inf, disc[:-1] * np.sqrt(n[:-1] / n[1:])]  # the loop's predictions
+    # a level k and a tol it misses by less than its solver part, nothing earlier affected
+    ks = [
+        k
+        for k in range(1, len(eta))
+        if solver_part[k] > 0.05 * eta[k]
+        and (eta[:k] - solver_part[:k] > eta[k] - 0.5 * solver_part[k]).all()
+        and (hints[: k + 1] > eta[k] - 0.5 * solver_part[k]).all()
+    ]
+    assert ks, "no level with a solver share to test on"
+    k = ks[0]
+    tol = eta[k] - 0.5 * solver_part[k]
+    r = fm.solve(scene, tol=tol, max_levels=k + 1)
+    table = r.adaptivity
+    # the meshes up to k are the plain run's; mesh k was solved twice
+    np.testing.assert_array_equal(table["n_vertices"][: k + 1], n[: k + 1])
+    levels = r.parameters["solver"]["levels"]
+    mesh_k = [lv for lv in levels if lv["n_vertices"] == n[k]]
+    assert len(mesh_k) == 1
+    assert mesh_k[0]["solves"] == 2
+    assert table["newton"][k] > plain["newton"][k]
+    assert table["eta_alg"][k] < plain["eta_alg"][k]
+    # the loop's eta on mesh k is the fresh bound of the triple it kept
+    if r.mesh.n_vertices == n[k]:
+        est = fm.estimate(_default(r.mesh), r.u1, r.u2, r.lam)
+        assert est.eta == pytest.approx(table["eta"][k], rel=1e-10)
+    h = r.history
+    assert np.all(np.diff(h["level"]) >= 0)
+    assert h["level"][-1] == len(levels) - 1
+    assert int(h["inner_total"][-1]) == sum(lv["inner"] for lv in levels)
+
+
+def test_last_mesh_is_solved_tighter():
+    """The mesh expected to be the last gets gamma = FINAL_GAMMA: its eta_alg is small."""
+    import fastmem.afem as afem
+
+    scene = _default(fm.Mesh.lshape(8))
+    t = fm.solve(scene, tol=5e-3).adaptivity
+    predicted = t["eta_disc"][-2] * np.sqrt(t["n_vertices"][-2] / t["n_vertices"][-1])
+    tol = predicted * (1 + 1e-9)  # the last mesh's prediction meets it, the one before not
+    assert (t["eta"][:-1] - t["eta_alg"][:-1] - t["eta_lin"][:-1] > tol).all()
+    r = fm.solve(scene, tol=tol, max_levels=len(t["level"]))
+    last = r.adaptivity
+    np.testing.assert_array_equal(last["n_vertices"], t["n_vertices"])
+    assert last["eta_alg"][-1] <= afem.FINAL_GAMMA * max(last["eta_disc"][-1], last["eta_lin"][-1])
+    assert last["eta_alg"][-1] < t["eta_alg"][-1]
+    est = fm.estimate(_default(r.mesh), r.u1, r.u2, r.lam)
+    assert est.eta == pytest.approx(last["eta"][-1], rel=1e-10)
