@@ -32,6 +32,19 @@ waits; target <= 50 ms); ``noop_latency_ms``: median round trip of one no-op
 task (submit -> result, nothing queued); ``noop_throughput_ms``: wall time of
 many no-op tasks at once / their number.
 
+Ceiling without Dask: a **pool** of 2 plain processes (``multiprocessing``,
+spawned, 1 Numba thread and BLAS 1 each, as dask's workers; runs handed out one
+at a time), solving and saving the same 32 runs, in the same repetitions
+(fresh pool each, started outside the timing).  ``ceiling_ratio`` = serial /
+pool is what two single-threaded processes give on this machine with no
+scheduler at all; ``sweep_vs_pool`` = pool / sweep is Dask's efficiency against
+it.  Per-task split of the sweeps (from the archives' timings and the write
+log): scene factory, assembly, coarsening, solve (Newton + estimate), and the
+rest of the task (claim, archive checks, write + fsync, log); CPU seconds of
+the client process (client, scheduler and nannies of the LocalCluster) and of
+the workers during each sweep; and the client's index rewrite (32 rows), timed
+alone.
+
 Memory: ``VmHWM`` (peak resident set) of each worker process after all
 sweeps, and of the serial loop's process.  Correctness: every sweep table
 is compared with the serial results (eta, contact fraction, Newton steps,
@@ -43,6 +56,7 @@ run one Numba thread, the serial loop two, so round-off may differ.
 
 import argparse
 import json
+import multiprocessing
 import os
 import statistics
 import tempfile
@@ -78,6 +92,93 @@ def _vmhwm_mb():
             if line.startswith("VmHWM:"):
                 return int(line.split()[1]) / 1024.0
     return None
+
+
+_ONE_THREAD_BLAS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def _pool_init():
+    """A pool process as dask gives its workers: 1 Numba thread; warm (JIT caches)."""
+    import numba
+
+    import fastmem as fm
+    from fastmem import sweeps
+
+    numba.set_num_threads(1)
+    fm.solve(sweeps.standard_scene(n=8))
+
+
+def _pid(_):
+    return os.getpid()
+
+
+def _pool_run(job):
+    """Solve and save one run in a pool process; return its seconds."""
+    import fastmem as fm
+    from fastmem import sweeps
+
+    folder, params = job
+    t0 = time.perf_counter()
+    fm.solve(sweeps.standard_scene(**params)).save(Path(folder) / f"{sweeps.run_name(params)}.h5")
+    return time.perf_counter() - t0
+
+
+def pool_loop(runs, folder, workers):
+    """The runs on a fresh pool of plain processes (no Dask); return wall time and task times."""
+    saved = {k: os.environ.get(k) for k in _ONE_THREAD_BLAS}
+    os.environ.update(dict.fromkeys(_ONE_THREAD_BLAS, "1"))  # inherited by the spawned pool
+    try:
+        pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_pool_init)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    folder.mkdir()
+    with pool:
+        pids = set()
+        while len(pids) < workers:  # every process has finished its initializer
+            pids.update(pool.map(_pid, range(workers), chunksize=1))
+        t0 = time.perf_counter()
+        seconds = pool.map(_pool_run, [(str(folder), p) for p in runs], chunksize=1)
+        wall = time.perf_counter() - t0
+    return wall, seconds
+
+
+def _cpu_seconds():
+    """User + system CPU seconds of the calling process (run on each worker, and here)."""
+    import psutil
+
+    t = psutil.Process().cpu_times()
+    return t.user + t.system
+
+
+def task_split(table, log):
+    """Median seconds per task: scene, assembly, coarsening, solve (+ estimate), rest of task."""
+    import fastmem as fm
+
+    task = {e["run"]: e["seconds"] for e in log}
+    parts = {k: [] for k in ("scene", "assembly", "coarsening", "solve", "rest_of_task", "task")}
+    for row in table.itertuples():
+        t = fm.load(row.archive).timings
+        parts["scene"].append(t["scene"])
+        for k in ("assembly", "coarsening", "solve"):
+            parts[k].append(t.get(k, 0.0))
+        parts["rest_of_task"].append(task[row.run] - t["scene"] - t["total"])
+        parts["task"].append(task[row.run])
+    return {k: statistics.median(v) for k, v in parts.items()}
+
+
+def index_write_ms(table, folder, repeat=20):
+    """Milliseconds of one rewrite of the study's index (the client's work after each run)."""
+    from fastmem.sweep_index import _read_index, _write_index
+
+    attrs, rows = _read_index(folder)
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        _write_index(folder, attrs["spec"], rows, {"running": 0, "active": False})
+    return 1000.0 * (time.perf_counter() - t0) / repeat
 
 
 def serial_loop(runs, folder):
@@ -130,15 +231,20 @@ def reference(runs, folder):
 
 
 def run_sweep(client, grid, folder):
-    """One sweep into a fresh folder; return its wall time, table and the write log."""
+    """One sweep into a fresh folder; return its wall time, table, write log and CPU seconds."""
     import fastmem as fm
     from fastmem import sweeps
 
+    workers0, client0 = client.run(_cpu_seconds), _cpu_seconds()
     t0 = time.perf_counter()
     table = fm.sweep(sweeps.standard_scene, grid, folder, client=client)
     wall = time.perf_counter() - t0
+    cpu = {
+        "client_process": _cpu_seconds() - client0,
+        "workers": sum(client.run(_cpu_seconds).values()) - sum(workers0.values()),
+    }
     log = [json.loads(ln) for ln in (folder / sweeps.WRITE_LOG).read_text().splitlines()]
-    return wall, table, log
+    return wall, table, log, cpu
 
 
 def compare(table, expected):
@@ -162,7 +268,7 @@ def compare(table, expected):
     return worst
 
 
-def sweep_row(kind, wall, table, log, workers):
+def sweep_row(kind, wall, table, log, workers, cpu):
     busy = sum(entry["seconds"] for entry in log)
     tasks = len(table)
     by_pid = {}
@@ -179,6 +285,8 @@ def sweep_row(kind, wall, table, log, workers):
         "idle_per_task_ms": 1000.0 * (wall * workers - busy) / tasks,
         "first_task_per_worker_s": [v[0] for v in by_pid.values()],
         "later_tasks_median_s": statistics.median(later) if later else None,
+        "cpu_s": cpu,
+        "task_split_median_s": task_split(table, log),
     }
 
 
@@ -225,7 +333,7 @@ def main(argv=None):
     warmup_s = time.perf_counter() - t0
     unit = poisson_unit(fm.Mesh.square(spec["n"]))
 
-    rows, serial_times, warm_times = [], [], []
+    rows, serial_times, warm_times, pool_times = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="fastmem-bench-sweep-") as tmp:
         tmp = Path(tmp)
         first_serial = serial(grid, tmp / "serial-0")
@@ -240,8 +348,8 @@ def main(argv=None):
         with sweeps._connect(None, WORKERS, None, 3) as (client, threads):
             start = time.perf_counter() - t0
             progress(f"sweep: LocalCluster of {WORKERS} workers started in {start:.2f} s")
-            wall, table, log = run_sweep(client, grid, tmp / "sweep-first")
-            first = sweep_row("sweep-first", wall, table, log, WORKERS)
+            wall, table, log, cpu = run_sweep(client, grid, tmp / "sweep-first")
+            first = sweep_row("sweep-first", wall, table, log, WORKERS, cpu)
             first["check"] = compare(table, reference_runs)
             rows.append(first)
             progress(f"sweep: first sweep (cold workers) {wall:.2f} s")
@@ -250,25 +358,57 @@ def main(argv=None):
                     out = serial(grid, tmp / f"serial-{rep}")
                     serial_times.append(out["seconds"])
                     rows.append({"kind": "serial", "rep": rep, "tasks": len(runs), **out})
-                wall, table, log = run_sweep(client, grid, tmp / f"sweep-{rep}")
-                row = sweep_row("sweep-warm", wall, table, log, WORKERS)
+                pool_wall, pool_seconds = pool_loop(runs, tmp / f"pool-{rep}", WORKERS)
+                pool_times.append(pool_wall)
+                rows.append(
+                    {
+                        "kind": "pool",
+                        "rep": rep,
+                        "tasks": len(runs),
+                        "seconds": pool_wall,
+                        "task_seconds": summary(pool_seconds),
+                    }
+                )
+                wall, table, log, cpu = run_sweep(client, grid, tmp / f"sweep-{rep}")
+                row = sweep_row("sweep-warm", wall, table, log, WORKERS, cpu)
                 row["rep"] = rep
                 row["check"] = compare(table, reference_runs)
                 rows.append(row)
                 warm_times.append(wall)
                 progress(
-                    f"sweep: rep {rep}: serial {serial_times[-1]:.2f} s, sweep {wall:.2f} s, "
+                    f"sweep: rep {rep}: serial {serial_times[-1]:.2f} s, pool {pool_wall:.2f} s, "
+                    f"sweep {wall:.2f} s, "
                     f"ratio {serial_times[-1] / wall:.2f}, idle/task {row['idle_per_task_ms']:.1f} "
                     f"ms, eta rel diff {row['check']['eta_rel']:.1e}"
                 )
+            index_ms = index_write_ms(table, tmp / f"sweep-{repeat - 1}")
             noop = noop_overhead(client)
             workers_mem = client.run(_vmhwm_mb)
 
     serial_med = statistics.median(serial_times)
     warm_med = statistics.median(warm_times)
     warm_rows = [r for r in rows if r["kind"] == "sweep-warm"]
+    pool_med = statistics.median(pool_times)
+    split = {
+        k: statistics.median(r["task_split_median_s"][k] for r in warm_rows)
+        for k in warm_rows[0]["task_split_median_s"]
+    }
     result = {
         "throughput_ratio": serial_med / warm_med,
+        "ceiling_ratio": serial_med / pool_med,
+        "sweep_vs_pool": pool_med / warm_med,
+        "pool_s": summary(pool_times),
+        "pool_task_mean_s": statistics.median(
+            r["task_seconds"]["median"] for r in rows if r["kind"] == "pool"
+        ),
+        "task_split_median_s": split,
+        "client_process_cpu_s_per_sweep": statistics.median(
+            r["cpu_s"]["client_process"] for r in warm_rows
+        ),
+        "worker_cpu_s_per_task": statistics.median(
+            r["cpu_s"]["workers"] / r["tasks"] for r in warm_rows
+        ),
+        "index_write_ms": index_ms,
         "throughput_ratio_first_sweep": serial_med / first["seconds"],
         "throughput_ratio_first_with_cluster_start": serial_med / (first["seconds"] + start),
         "serial_s": summary(serial_times),
@@ -287,6 +427,12 @@ def main(argv=None):
         "max_u1_abs_diff": max(r["check"]["u1_abs"] for r in rows if "check" in r),
         "all_done": all(r["check"]["all_done"] for r in rows if "check" in r),
     }
+    progress(
+        f"sweep: ceiling (serial / pool of {WORKERS} plain processes) "
+        f"{result['ceiling_ratio']:.2f}, sweep / pool {result['sweep_vs_pool']:.3f}; task split "
+        + ", ".join(f"{k} {v:.3f}" for k, v in split.items())
+        + f" s; client process CPU {result['client_process_cpu_s_per_sweep']:.2f} s per sweep"
+    )
     progress(
         f"sweep: throughput ratio {result['throughput_ratio']:.2f} (first sweep "
         f"{result['throughput_ratio_first_sweep']:.2f}, with cluster start "

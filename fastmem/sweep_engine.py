@@ -56,6 +56,14 @@ def _connect(client, workers, numba_threads, max_retries):
             "distributed.nanny.pre-spawn-environ": {
                 k: v for k, v in pre_spawn.items() if k != "MALLOC_TRIM_THRESHOLD_"
             },
+            # no dashboard: nobody reads the workers' statistical profile (a thread
+            # sampling the task's stack every 10 ms) or the 0.5 s system monitors, and the
+            # 20 ms event-loop watchdog only warns.  Idle, they cost the client process
+            # 48 ms/s and each worker 38 ms/s of CPU; with these 11-19 and 6-8 ms/s
+            # (docs/sweeps.md, Threads and memory), CPU the solves get back.
+            "distributed.worker.profile.enabled": False,
+            "distributed.admin.system-monitor.interval": "2s",
+            "distributed.admin.tick.interval": "200ms",
         }
         touched = [*pre_spawn, "PYTHONHASHSEED"]
         with _restored_environ(touched), dask.config.set(config):
