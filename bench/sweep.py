@@ -125,16 +125,11 @@ def _pool_run(job):
 
 def pool_loop(runs, folder, workers):
     """The runs on a fresh pool of plain processes (no Dask); return wall time and task times."""
-    saved = {k: os.environ.get(k) for k in _ONE_THREAD_BLAS}
-    os.environ.update(dict.fromkeys(_ONE_THREAD_BLAS, "1"))  # inherited by the spawned pool
-    try:
+    from fastmem.sweeps import _restored_environ
+
+    with _restored_environ(_ONE_THREAD_BLAS):
+        os.environ.update(dict.fromkeys(_ONE_THREAD_BLAS, "1"))  # inherited by the spawned pool
         pool = multiprocessing.get_context("spawn").Pool(workers, initializer=_pool_init)
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
     folder.mkdir()
     with pool:
         pids = set()
