@@ -370,32 +370,47 @@ CROSS_POINT_MAX_FRACTION = 0.05
 def cross_point_vertices(mesh, mu, contrast=CROSS_POINT_CONTRAST) -> np.ndarray:
     r"""Interior vertices where the tension is not quasi-monotone (bool (N,)).
 
-    Around vertex a, sort the patch triangles by angle; call a triangle high if
-    :math:`\mu_K \ge (\max_{\omega_a}\mu\,\min_{\omega_a}\mu)^{1/2}`.  The vertex is
-    marked when the high triangles form at least two separate runs around a
-    (checkerboard cross points: the stiff material touches a only through the
-    vertex itself) and :math:`\max/\min \ge` ``contrast``.  Vectorised, no loop
-    over vertices.
+    Around vertex a, call a patch triangle high if
+    :math:`\mu_K \ge (\max_{\omega_a}\mu\,\min_{\omega_a}\mu)^{1/2}`.  The vertex
+    is marked when the high triangles form at least two separate runs in the
+    cyclic order around a (checkerboard cross points: the stiff material
+    touches a only through the vertex itself) and :math:`\max/\min \ge`
+    ``contrast``.
+
+    Around an interior vertex the runs of high triangles are counted without
+    sorting by angle: every edge (a, b) separates two consecutive triangles of
+    the patch of a, and each run of high triangles begins and ends at such an
+    edge, so the number of runs is half the number of edges at a whose two
+    triangles differ (high/low with a's threshold).  One pass over the edges
+    (O(E), no loop over vertices, no sort); tests/test_cross_point.py checks it
+    against an angle-sorting reference.
     """
     mu = np.asarray(mu, dtype=np.float64)
     n = mesh.n_vertices
     if mu.ndim == 0:
         return np.zeros(n, dtype=bool)
     ptr = mesh.patch_ptr
-    pt = mesh.patch_triangles
-    counts = np.diff(ptr)
-    v = np.repeat(np.arange(n), counts)
-    cen = mesh.vertices[mesh.triangles[pt]].mean(axis=1) - mesh.vertices[v]
-    order = np.lexsort((np.arctan2(cen[:, 1], cen[:, 0]), v))
-    mus = mu[pt[order]]
+    mus = mu[mesh.patch_triangles]
     starts = ptr[:-1]
     big = np.maximum.reduceat(mus, starts)
     small = np.minimum.reduceat(mus, starts)
-    high = mus >= np.sqrt(big * small)[v]
-    prev = np.arange(mus.size) - 1
-    prev[starts] = ptr[1:] - 1  # cyclic predecessor inside each patch
-    runs = np.bincount(v, weights=(high & ~high[prev]).astype(np.float64), minlength=n)
-    return (runs >= 2) & (big >= contrast * small) & ~mesh.boundary_vertex_mask
+    del mus
+    candidate = (big >= contrast * small) & ~mesh.boundary_vertex_mask
+    if not candidate.any():
+        return np.zeros(n, dtype=bool)
+    thresh = np.sqrt(big * small)
+    et = mesh.edge_triangles
+    ev = mesh.edges
+    inner = np.flatnonzero((et[:, 1] >= 0) & (candidate[ev[:, 0]] | candidate[ev[:, 1]]))
+    mu_a = mu[et[inner, 0]]
+    mu_b = mu[et[inner, 1]]
+    transitions = np.zeros(n, dtype=np.int64)
+    for end in (0, 1):
+        v = ev[inner, end]
+        th = thresh[v]
+        differ = (mu_a >= th) != (mu_b >= th)
+        transitions += np.bincount(v[differ], minlength=n)
+    return candidate & (transitions >= 4)
 
 
 def _p2_gradients(grads, bary):
@@ -415,6 +430,81 @@ def _p2_gradients(grads, bary):
         for j, k in ((1, 2), (2, 0), (0, 1))
     ]
     return np.concatenate([gv, np.stack(ge, axis=2)], axis=2)
+
+
+def _cross_point_setup(scene, i: int, rings: int):
+    """Return the part of :func:`cross_point_correction` that depends on mesh and tension only.
+
+    Membrane ``i`` (0 or 1): the region, its P2 numbering and the factorised
+    weighted P2 stiffness matrix on the free degrees of freedom, or None when
+    no vertex qualifies or the region is too large.  Cached on the scene (a
+    Scene is immutable), so the estimator evaluations of a solve classify the
+    vertices and factorise once.
+    """
+    cache = getattr(scene, "_cache", None)
+    key = ("cross_point", i, rings)
+    if cache is not None and key in cache:
+        return cache[key]
+    setup = _build_cross_point_setup(scene.mesh, (scene.mu1, scene.mu2)[i], rings, i)
+    if cache is not None:
+        cache[key] = setup
+    return setup
+
+
+def _build_cross_point_setup(mesh, mu, rings: int, i: int):
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    from .quadrature import triangle_rule
+
+    marked = cross_point_vertices(mesh, mu)
+    if not marked.any():
+        return None
+    tri_all = mesh.triangles
+    vm = marked.copy()
+    for _ in range(rings):
+        vm[tri_all[vm[tri_all].any(axis=1)].ravel()] = True
+    region = vm[tri_all].any(axis=1)
+    nreg = int(region.sum())
+    if nreg > CROSS_POINT_MAX_TRIANGLES and nreg > CROSS_POINT_MAX_FRACTION * mesh.n_triangles:
+        logger.debug("cross-point correction, membrane %d: skipped (%d triangles)", i + 1, nreg)
+        return None
+    rt = np.flatnonzero(region)
+    tri = tri_all[rt]
+    n = mesh.n_vertices
+    dofs = np.concatenate([tri, n + mesh.triangle_edges[rt].astype(np.int64)], axis=1)
+    out = np.flatnonzero(~region)
+    fixed = np.zeros(n + mesh.n_edges, dtype=bool)
+    fixed[tri_all[out].ravel()] = True
+    fixed[n + mesh.triangle_edges[out].ravel().astype(np.int64)] = True
+    mu_k = np.broadcast_to(np.asarray(mu, dtype=np.float64), (mesh.n_triangles,))[rt]
+    wt = mesh.areas[rt] / mu_k
+    bary, w = triangle_rule(4)
+    g = _p2_gradients(mesh.gradients[rt], bary)  # (R, nq, 6, 2)
+    kloc = np.einsum("r,q,rqid,rqjd->rij", wt, w, g, g)
+    used, local = np.unique(dofs, return_inverse=True)
+    local = local.reshape(dofs.shape)
+    free = ~fixed[used]
+    if free.all():
+        free[0] = False  # the region is the whole mesh: phi up to a constant
+    idx = np.flatnonzero(free)
+    if idx.size == 0:
+        return None
+    nu = used.size
+    rows = np.repeat(local, 6, axis=1).ravel()
+    cols = np.tile(local, (1, 6)).ravel()
+    a = sp.csr_matrix((kloc.ravel(), (rows, cols)), shape=(nu, nu))
+    lu = splu(a[idx][:, idx].tocsc())
+    return {
+        "rt": rt,
+        "tri": tri,
+        "local": local,
+        "idx": idx,
+        "wt": wt,
+        "mu_k": mu_k,
+        "n_dofs": nu,
+        "lu": lu,
+    }
 
 
 def cross_point_correction(scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RINGS) -> Fluxes:
@@ -481,40 +571,18 @@ def cross_point_correction(scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RING
     triangles (random per-triangle tensions, where every vertex qualifies and
     a global solve would cost more than the reconstruction).
     """
-    import scipy.sparse as sp
-    from scipy.sparse.linalg import spsolve
-
     from .quadrature import quadrature_points, triangle_rule
 
     mesh = scene.mesh
     coef = None
     bary, w = triangle_rule(4)
-    for i, (u, mu) in enumerate(((u1, scene.mu1), (u2, scene.mu2))):
-        marked = cross_point_vertices(mesh, mu)
-        if not marked.any():
+    for i, u in enumerate((u1, u2)):
+        setup = _cross_point_setup(scene, i, rings)
+        if setup is None:
             continue
-        tri_all = mesh.triangles
-        vm = marked.copy()
-        for _ in range(rings):
-            vm[tri_all[vm[tri_all].any(axis=1)].ravel()] = True
-        region = vm[tri_all].any(axis=1)
-        nreg = int(region.sum())
-        if nreg > CROSS_POINT_MAX_TRIANGLES and nreg > CROSS_POINT_MAX_FRACTION * mesh.n_triangles:
-            logger.debug("cross-point correction, membrane %d: skipped (%d triangles)", i + 1, nreg)
-            continue
-        rt = np.flatnonzero(region)
-        tri = tri_all[rt]
-        n = mesh.n_vertices
-        dofs = np.concatenate([tri, n + mesh.triangle_edges[rt].astype(np.int64)], axis=1)
-        out = np.flatnonzero(~region)
-        fixed = np.zeros(n + mesh.n_edges, dtype=bool)
-        fixed[tri_all[out].ravel()] = True
-        fixed[n + mesh.triangle_edges[out].ravel().astype(np.int64)] = True
-        mu_k = np.broadcast_to(np.asarray(mu, dtype=np.float64), (mesh.n_triangles,))[rt]
-        area = mesh.areas[rt]
+        rt, tri, local, idx, wt = (setup[k] for k in ("rt", "tri", "local", "idx", "wt"))
+        mu_k = setup["mu_k"]
         g = _p2_gradients(mesh.gradients[rt], bary)  # (R, nq, 6, 2)
-        wt = area / mu_k
-        kloc = np.einsum("r,q,rqid,rqjd->rij", wt, w, g, g)
         x, y = quadrature_points(mesh.vertices, tri, bary)
         nq = x.shape[1]
         sig = fluxes.evaluate(i, np.repeat(rt, nq), x.ravel(), y.ravel()).reshape(-1, nq, 2)
@@ -522,21 +590,10 @@ def cross_point_correction(scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RING
         s = mu_k[:, None, None] * gu[:, None, :] + sig
         # -(mu^-1 s, curl psi_j), curl psi = (d_y psi, -d_x psi)
         bloc = -np.einsum("r,q,rqj->rj", wt, w, s[..., 0:1] * g[..., 1] - s[..., 1:2] * g[..., 0])
-        used, local = np.unique(dofs, return_inverse=True)
-        local = local.reshape(dofs.shape)
-        free = ~fixed[used]
-        if free.all():
-            free[0] = False  # the region is the whole mesh: phi up to a constant
-        nu = used.size
-        rows = np.repeat(local, 6, axis=1).ravel()
-        cols = np.tile(local, (1, 6)).ravel()
-        a = sp.csr_matrix((kloc.ravel(), (rows, cols)), shape=(nu, nu))
+        nu = setup["n_dofs"]
         b = np.bincount(local.ravel(), weights=bloc.ravel(), minlength=nu)
-        idx = np.flatnonzero(free)
-        if idx.size == 0:
-            continue
         phi = np.zeros(nu)
-        phi[idx] = spsolve(a[idx][:, idx].tocsc(), b[idx])
+        phi[idx] = setup["lu"].solve(b[idx])
         ph = phi[local]  # (R, 6)
         gv = np.einsum("rj,rkjd->rkd", ph, _p2_gradients(mesh.gradients[rt], np.eye(3)))
         curl = np.stack([gv[..., 1], -gv[..., 0]], axis=-1)  # (R, 3 vertices, 2)

@@ -140,3 +140,50 @@ def test_checkerboard_effectivity_with_correction(n):
         r = fm.solve(build(mesh), method=method, estimate=True)
         eff = r.eta / err(r.u1, r.u2)
         assert 1.0 <= eff <= 1.01 * CROSS_POINT_EFFECTIVITY[(n, method)], (method, eff)
+
+
+def _marked_by_angle_sort(mesh, mu, contrast=flux.CROSS_POINT_CONTRAST):
+    """Plain reference: sort each patch by angle, count the runs of high triangles."""
+    out = np.zeros(mesh.n_vertices, dtype=bool)
+    cen = mesh.vertices[mesh.triangles].mean(axis=1)
+    for a in mesh.interior_vertices:
+        tris = mesh.patch_triangles[mesh.patch_ptr[a] : mesh.patch_ptr[a + 1]]
+        d = cen[tris] - mesh.vertices[a]
+        m = mu[tris[np.argsort(np.arctan2(d[:, 1], d[:, 0]))]]
+        if m.max() < contrast * m.min():
+            continue
+        high = m >= np.sqrt(m.max() * m.min())
+        runs = sum(1 for k in range(m.size) if high[k] and not high[k - 1])
+        out[a] = runs >= 2
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_marking_by_edge_transitions_matches_angle_sort(seed):
+    rng = np.random.default_rng(seed)
+    for mesh in (fm.Mesh.square(10), perturbed_square(11, 0.3, seed=seed), fm.Mesh.lshape(6)):
+        for mu in (
+            _checkerboard(mesh, 1e3),
+            np.where(rng.random(mesh.n_triangles) < 0.5, 1.0, 1e3),
+            10.0 ** rng.uniform(-3, 3, mesh.n_triangles),
+        ):
+            want = _marked_by_angle_sort(mesh, mu)
+            assert np.array_equal(flux.cross_point_vertices(mesh, mu), want)
+        assert 0 < want.sum() < mesh.n_vertices  # the random fields mark some, not all
+
+
+def test_setup_cached_per_scene():
+    mesh = fm.Mesh.square(12)
+    scene = _scene(mesh, _checkerboard(mesh, 1e3))
+    r = fm.solve(scene, method="exact", estimate=False)
+    base = flux.reconstruct(scene, r.u1, r.u2, r.lam)
+    first = flux.cross_point_correction(scene, r.u1, r.u2, base)
+    setup = scene._cache[("cross_point", 0, flux.CROSS_POINT_RINGS)]
+    assert setup is not None
+    assert scene._cache[("cross_point", 1, flux.CROSS_POINT_RINGS)] is None
+    again = flux.cross_point_correction(scene, r.u1, r.u2, base)
+    assert scene._cache[("cross_point", 0, flux.CROSS_POINT_RINGS)] is setup
+    assert np.array_equal(first.coef, again.coef)
+    # a fresh scene (no cache) gives the same correction
+    fresh = flux.cross_point_correction(_scene(mesh, scene.mu1), r.u1, r.u2, base)
+    assert np.array_equal(first.coef, fresh.coef)
