@@ -55,7 +55,7 @@ Derived index arrays use the 32-bit index path (at most :data:`INDEX_LIMIT` =
 :class:`~fastmem.errors.MeshError` above; the n = 4096 square has 33.5M
 triangles): ``edges``, ``triangle_edges``, ``edge_triangles`` and
 ``patch_triangles`` are int32, ``patch_local`` (0, 1 or 2) is int8, ``patch_ptr``
-int64; 150 bytes per vertex less than int64 throughout.
+int64; about 140 bytes per vertex less than int64 throughout.
 """
 
 from __future__ import annotations

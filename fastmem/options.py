@@ -64,8 +64,8 @@ METHODS = ("inexact", "exact-amg", "exact")
 #: Linear-step formulations (docs/method.md §3.2 and 3.3).
 PATHS = ("auto", "general", "decoupled")
 
-#: Default vertex limit of the adaptive loop (about 10M triangles; ~12 GB at the
-#: measured 2.3 KB per vertex of a solve with the bound).
+#: Default vertex limit of the adaptive loop (about 10M triangles; ~6 GB at the
+#: measured 1.1-1.3 KB per vertex of a solve with the bound).
 MAX_VERTICES = 5_000_000
 #: Vertex limit of the adaptive loop with method="exact" (default and largest accepted):
 #: a sparse direct factorisation of the reduced system of a 1M-vertex mesh takes about
@@ -287,10 +287,11 @@ BASE_BYTES = 300_000_000
 
 #: Peak resident bytes per vertex of a solve with the bound on a mesh with about two
 #: triangles per vertex (mesh -> scene -> fm.solve -> result.save; bench/memory.py,
-#: default scene: 1450 B/vertex above BASE_BYTES at n = 2048, 1750 at n = 1024 where
-#: freed heap memory is not returned to the system), with a margin.  "exact" adds the
-#: sparse factorisation (about 3 GB per million vertices, see :data:`EXACT_MAX_VERTICES`).
-SOLVE_BYTES_PER_VERTEX = {"inexact": 1800, "exact-amg": 1800, "exact": 4800}
+#: default scene, "inexact": 1070 B/vertex above BASE_BYTES at n = 2048, 1280 at n = 1024
+#: where freed heap memory is not returned to the system), with a margin; "exact-amg" is
+#: not measured and keeps its former figure.  "exact" adds the sparse factorisation
+#: (about 3 GB per million vertices, see :data:`EXACT_MAX_VERTICES`).
+SOLVE_BYTES_PER_VERTEX = {"inexact": 1350, "exact-amg": 1800, "exact": 4650}
 
 #: Part of the peak due to the flux reconstruction (RT1 coefficients of both membranes,
 #: 256 bytes per vertex, and its work arrays): not needed with ``estimate=False``.
