@@ -38,6 +38,14 @@ def _connect(client, workers, numba_threads, max_retries):
     distributed = _require_dask()
     import dask
 
+    # A ``with dask.config.set(...)`` block around the first import of distributed
+    # removes distributed's whole config section when the block ends (set() puts the
+    # key back to "absent"), and the next cluster fails with KeyError: 'nanny'.  Fill
+    # in the defaults of every missing key (existing values are kept).
+    if "distributed" not in dask.config.config:
+        for defaults in dask.config.defaults:
+            dask.config.update(dask.config.config, defaults, priority="old")
+
     if client is None:
         cores = os.cpu_count() or 1
         n = cores if workers is None else workers

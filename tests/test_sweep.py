@@ -604,3 +604,23 @@ def test_wired_cli_plot_study(study, tmp_path):
     png = tmp_path / "plot.png"
     assert main(["plot", str(out), "--x", "mu2", "--y", "contact_fraction", "-o", str(png)]) == 0
     assert png.stat().st_size > 0
+
+
+def test_cluster_after_config_block_around_first_distributed_import(tmp_path):
+    """dask.config.set around the first import of distributed must not break the next sweep."""
+    code = """
+import dask
+with dask.config.set({"distributed.comm.timeouts.connect": "20s"}):
+    import distributed
+assert "distributed" not in dask.config.config  # the pitfall: the section is gone
+from fastmem.sweep_engine import _connect
+with _connect(None, 1, 1, 1) as (client, threads):
+    assert client.submit(sum, [40, 2]).result() == 42
+assert dask.config.get("distributed.comm.timeouts.connect") == "30s"  # defaults back
+print("cluster ok")
+"""
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=180, cwd=tmp_path
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "cluster ok" in out.stdout
