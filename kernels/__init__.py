@@ -2,7 +2,7 @@
 
 Pure functions over contiguous NumPy arrays and scalars.  They validate
 nothing: the ``fastmem`` layer checks every input before calling them.  This
-package imports only numpy, numba and math, never ``fastmem``.
+package imports only numpy, numba and the standard library, never ``fastmem``.
 """
 
 from ._jit import FASTMATH

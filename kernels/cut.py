@@ -33,15 +33,15 @@ Values may range over many orders of magnitude (tested for 1e-12 ... 1e12);
 only the ratios ``w_p / (w_p - w_n)`` enter the geometry, so scaling ``w`` by
 a power of two leaves :func:`positive_area` bitwise unchanged.
 
-Threading: every kernel runs ``prange`` over triangles; iteration ``t``
-writes ``out[t]`` only, into an array allocated before the loop.  The result is
+Threading: every kernel runs over the triangles in chunks (serial Numba
+loops in Python threads, :mod:`._par`); iteration ``t`` writes ``out[t]`` only, into an array allocated before the loop.  The result is
 bitwise independent of the thread count.  Inputs are not modified.
 """
 
 import numpy as np
-from numba import prange
 
-from ._jit import jit, pjit
+from ._jit import jit
+from ._par import parallel_for
 
 __all__ = ["contact_terms", "positive_area", "positive_product"]
 
@@ -106,7 +106,6 @@ def _cut(w0, w1, w2, v0, v1, v2):
     return f1 + f2, (f1 * m1 + f2 * m2) / 12.0
 
 
-@pjit
 def positive_area(vertices, triangles, w):
     """Area of ``{w > 0} ∩ K`` for every triangle K, for a nodal P1 function ``w``.
 
@@ -126,7 +125,13 @@ def positive_area(vertices, triangles, w):
     """
     m = triangles.shape[0]
     out = np.empty(m)
-    for t in prange(m):
+    parallel_for(_positive_area_range, m, vertices, triangles, w, out)
+    return out
+
+
+@jit
+def _positive_area_range(lo, hi, vertices, triangles, w, out):
+    for t in range(lo, hi):
         i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         x0, y0 = vertices[i0, 0], vertices[i0, 1]
         x1, y1 = vertices[i1, 0], vertices[i1, 1]
@@ -134,10 +139,8 @@ def positive_area(vertices, triangles, w):
         area = 0.5 * ((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
         frac, _ = _cut(w[i0], w[i1], w[i2], 0.0, 0.0, 0.0)
         out[t] = frac * area
-    return out
 
 
-@pjit
 def positive_product(vertices, triangles, w, v):
     """``(v, w⁺)_K`` for every triangle K, for nodal P1 functions ``v`` and ``w``.
 
@@ -160,7 +163,13 @@ def positive_product(vertices, triangles, w, v):
     """
     m = triangles.shape[0]
     out = np.empty(m)
-    for t in prange(m):
+    parallel_for(_positive_product_range, m, vertices, triangles, w, v, out)
+    return out
+
+
+@jit
+def _positive_product_range(lo, hi, vertices, triangles, w, v, out):
+    for t in range(lo, hi):
         i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         x0, y0 = vertices[i0, 0], vertices[i0, 1]
         x1, y1 = vertices[i1, 0], vertices[i1, 1]
@@ -168,10 +177,8 @@ def positive_product(vertices, triangles, w, v):
         area = 0.5 * ((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
         _, moment = _cut(w[i0], w[i1], w[i2], v[i0], v[i1], v[i2])
         out[t] = moment * area
-    return out
 
 
-@pjit
 def contact_terms(vertices, triangles, gap, lam_hat, mu2):
     r"""``eta_nc`` and ``eta_C`` of every triangle in one pass (the adaptive checks' hot loop).
 
@@ -197,8 +204,15 @@ def contact_terms(vertices, triangles, gap, lam_hat, mu2):
     m = triangles.shape[0]
     eta_nc = np.empty(m)
     eta_c = np.empty(m)
+    parallel_for(_contact_terms_range, m, vertices, triangles, gap, lam_hat, mu2, eta_nc, eta_c)
+    return eta_nc, eta_c
+
+
+@jit
+def _contact_terms_range(lo, hi, vertices, triangles, gap, lam_hat, mu2, eta_nc, eta_c):
+    m = triangles.shape[0]
     per_triangle = mu2.shape[0] == m and m > 1
-    for t in prange(m):
+    for t in range(lo, hi):
         i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         x0, y0 = vertices[i0, 0], vertices[i0, 1]
         ax, ay = vertices[i1, 0] - x0, vertices[i1, 1] - y0
@@ -214,4 +228,3 @@ def contact_terms(vertices, triangles, gap, lam_hat, mu2):
         eta_nc[t] = np.sqrt(mu * (gx * gx + gy * gy) * frac * area)
         _, moment = _cut(g0, g1, g2, lam_hat[i0], lam_hat[i1], lam_hat[i2])
         eta_c[t] = moment * area
-    return eta_nc, eta_c

@@ -63,9 +63,9 @@ races, and the result does not depend on the number of threads.
 """
 
 import numpy as np
-from numba import prange
 
-from ._jit import jit, pjit
+from . import _par
+from ._jit import jit
 from .rt1 import rt1_dofs_to_coefficients, rt1_local_xy
 
 __all__ = ["color_vertices", "flux_estimators", "reconstruct_colored"]
@@ -275,14 +275,15 @@ def _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, c
     _upper_solve1(smat, crhs, nt, c)
     # ds = L^-T Y dm with Y = L^-1 C^T (rows of Y^T in cmat); column 2 of fred is scratch
     for k in range(n_e):
-        fred[k, 2] = 0.0
+        fred[k, fred.shape[1] - 1] = 0.0
     for p in range(nt):
         dm = crhs[p, c]
         for k in range(cstart[p], n_e):
-            fred[k, 2] += cmat[p, k] * dm
-    _upper_solve1(mred, fred, n_e, 2)
+            fred[k, fred.shape[1] - 1] += cmat[p, k] * dm
+    scratch = fred.shape[1] - 1
+    _upper_solve1(mred, fred, n_e, scratch)
     for k in range(n_e):
-        fred[k, c] += fred[k, 2]
+        fred[k, c] += fred[k, scratch]
 
 
 @jit
@@ -557,21 +558,21 @@ def _patch_solve(
         for p in range(nt):
             corig[p, 0] = crhs[p, 0]
             corig[p, 1] = crhs[p, 1]
-    if shared:
-        _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, 0, 2)
-        if refine:
-            for c in range(2):
-                _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, corig, c)
-    else:
+    if not shared:
         for p in range(nt):
             for r in range(cstart[p], n_e):
                 cmat2[p, r] = cmat[p, r]
-        _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, 0, 1)
+    # one factorisation for both columns, or one per membrane (column counts are
+    # runtime values: one compiled specialisation of the solvers, not one per literal)
+    ncol = 2 if shared else 1
+    for c0 in range(0, 2, ncol):
+        mr = mred if c0 == 0 else mred2
+        cm = cmat if c0 == 0 else cmat2
+        sm = smat if c0 == 0 else smat2
+        _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, interior, c0, c0 + ncol)
         if refine:
-            _refine_balance(mred, fred, cmat, crhs, smat, cstart, n_e, nt, crow, emap, corig, 0)
-        _reduced_solve(mred2, fred, cmat2, crhs, smat2, cstart, n_e, nt, interior, 1, 2)
-        if refine:
-            _refine_balance(mred2, fred, cmat2, crhs, smat2, cstart, n_e, nt, crow, emap, corig, 1)
+            for c in range(c0, c0 + ncol):
+                _refine_balance(mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c)
     for p in range(nt):
         t = patch_triangles[pstart + p]
         for c in range(2):
@@ -588,7 +589,137 @@ def _patch_solve(
             out[c, t, 7] += z1
 
 
-@pjit
+@jit
+def _reconstruct_chunk(
+    order,
+    k0,
+    k1,
+    vertices,
+    triangles,
+    diameters,
+    tri_edges,
+    edge_tris,
+    boundary,
+    patch_ptr,
+    patch_triangles,
+    patch_local,
+    u1,
+    u2,
+    lam,
+    rho1,
+    rho2,
+    mu1,
+    mu2,
+    f1c,
+    f2c,
+    load1,
+    load2,
+    redist,
+    gamma,
+    max_nt,
+    out,
+):
+    """Patch problems of the vertices ``order[k0:k1]`` (one colour class or part of one).
+
+    Allocates one workspace for the chunk (sized for ``max_nt`` triangles);
+    no allocation inside the patch loop.
+    """
+    per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
+    nt = max_nt
+    ne = 6 * max_nt  # bound on the edge dofs (3 edges per triangle)
+    edge_ids = np.empty(3 * nt, dtype=np.int64)
+    emap = np.empty((nt, 6), dtype=np.int64)
+    cstart = np.empty(nt, dtype=np.int64)
+    kmat = np.empty((nt, 2, 6))
+    beta = np.empty((nt, 2, 2))
+    mred = np.empty((ne, ne))
+    fred = np.empty((ne, 3))  # two right-hand sides and a scratch column
+    cmat = np.empty((nt, ne))
+    crhs = np.empty((nt, 2))
+    smat = np.empty((nt, nt))
+    # second factorisation, only for patches whose weights are not proportional
+    n2e = ne if per_triangle else 1
+    n2t = nt if per_triangle else 1
+    mred2 = np.empty((n2e, n2e))
+    cmat2 = np.empty((n2t, n2e))
+    smat2 = np.empty((n2t, n2t))
+    crow = np.empty((nt, 6))  # original rows of C, for the refinement step
+    corig = np.empty((nt, 2))
+    mass = np.empty((8, 8))
+    div = np.empty((3, 8))
+    tau = np.empty((3, 2, 8))
+    gloc = np.empty((3, 2))
+    kapj = np.empty(3)
+    for k in range(k0, k1):
+        _patch_solve(
+            order[k],
+            vertices,
+            triangles,
+            diameters,
+            tri_edges,
+            edge_tris,
+            boundary,
+            patch_ptr,
+            patch_triangles,
+            patch_local,
+            u1,
+            u2,
+            lam,
+            rho1,
+            rho2,
+            mu1,
+            mu2,
+            f1c,
+            f2c,
+            load1,
+            load2,
+            redist,
+            gamma,
+            out,
+            edge_ids,
+            emap,
+            cstart,
+            kmat,
+            beta,
+            mred,
+            fred,
+            cmat,
+            crhs,
+            smat,
+            mred2,
+            cmat2,
+            smat2,
+            crow,
+            corig,
+            mass,
+            div,
+            tau,
+            gloc,
+            kapj,
+        )
+
+
+@jit
+def _coefficients_chunk(vertices, triangles, diameters, out, t0, t1):
+    """Local dof values -> canonical RT1 coefficients, in place, for triangles t0..t1-1."""
+    m = triangles.shape[0]
+    rows = out.reshape((2 * m, 8))
+    for t in range(t0, t1):
+        i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        x0, y0 = vertices[i0, 0], vertices[i0, 1]
+        x1, y1 = vertices[i1, 0], vertices[i1, 1]
+        x2, y2 = vertices[i2, 0], vertices[i2, 1]
+        h = diameters[t]
+        rt1_dofs_to_coefficients(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, rows, t)
+        rt1_dofs_to_coefficients(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, rows, m + t)
+
+
+#: fewest patches (triangles) per thread: below, a colour class (the final pass)
+#: runs in the calling thread (a thread hand-off costs about 20 us)
+PATCH_GRAIN = 256
+TRIANGLE_GRAIN = 4096
+
+
 def reconstruct_colored(
     order,
     color_ptr,
@@ -615,7 +746,7 @@ def reconstruct_colored(
     redist,
     gamma,
     max_nt,
-    n_chunks_hint,
+    n_threads,
 ):
     """Equilibrated fluxes of both membranes, canonical RT1 coefficients (2, M, 8).
 
@@ -646,124 +777,70 @@ def reconstruct_colored(
         The mass corrections gamma_a.
     max_nt : int
         Largest number of triangles in a patch (sizes the workspaces).
-    n_chunks_hint : int
-        Number of threads; each colour class is cut into 8 chunks per thread,
-        each with its own preallocated workspace.
+    n_threads : int
+        Threads; each colour class is cut into at most this many chunks, each
+        with its own workspace.
 
-    Threading: parallel over the vertices of one colour class at a time; a
-    patch writes only the rows of its own triangles, which no other vertex of
-    the class touches.  The patches accumulate local dof values (the sum of
+    Threading: one colour class at a time, its vertices cut into chunks run by
+    :mod:`._par` (serial Numba kernels without the GIL, so no parallel
+    compilation); a patch writes only the rows of its own triangles, which no
+    other vertex of the class touches, so the result is bit-identical for any
+    number of threads.  The patches accumulate local dof values (the sum of
     the sigma^a); one final pass over the triangles turns them into canonical
     coefficients.
     """
     m = triangles.shape[0]
     out = np.zeros((2, m, 8))
-    per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
-    nt = max_nt
-    ne = 6 * max_nt  # bound on the edge dofs (3 edges per triangle)
+    threads = max(1, int(n_threads))
+    args = (
+        vertices,
+        triangles,
+        diameters,
+        tri_edges,
+        edge_tris,
+        boundary,
+        patch_ptr,
+        patch_triangles,
+        patch_local,
+        u1,
+        u2,
+        lam,
+        rho1,
+        rho2,
+        mu1,
+        mu2,
+        float(f1c),
+        float(f2c),
+        load1,
+        load2,
+        redist,
+        gamma,
+        int(max_nt),
+        out,
+    )
+
+    def patches(k0, k1):
+        _reconstruct_chunk(order, k0, k1, *args)
+
     for c in range(color_ptr.shape[0] - 1):
-        lo = color_ptr[c]
-        count = color_ptr[c + 1] - lo
-        n_chunks = min(count, 8 * n_chunks_hint)
-        for ch in prange(n_chunks):
-            # one workspace per chunk: no allocation inside the patch loop
-            edge_ids = np.empty(3 * nt, dtype=np.int64)
-            emap = np.empty((nt, 6), dtype=np.int64)
-            cstart = np.empty(nt, dtype=np.int64)
-            kmat = np.empty((nt, 2, 6))
-            beta = np.empty((nt, 2, 2))
-            mred = np.empty((ne, ne))
-            fred = np.empty((ne, 3))  # two right-hand sides and a scratch column
-            cmat = np.empty((nt, ne))
-            crhs = np.empty((nt, 2))
-            smat = np.empty((nt, nt))
-            # second factorisation, only for patches whose weights are not proportional
-            n2e = ne if per_triangle else 1
-            n2t = nt if per_triangle else 1
-            mred2 = np.empty((n2e, n2e))
-            cmat2 = np.empty((n2t, n2e))
-            smat2 = np.empty((n2t, n2t))
-            crow = np.empty((nt, 6))  # original rows of C, for the refinement step
-            corig = np.empty((nt, 2))
-            mass = np.empty((8, 8))
-            div = np.empty((3, 8))
-            tau = np.empty((3, 2, 8))
-            gloc = np.empty((3, 2))
-            kapj = np.empty(3)
-            k0 = lo + (count * ch) // n_chunks
-            k1 = lo + (count * (ch + 1)) // n_chunks
-            for k in range(k0, k1):
-                _patch_solve(
-                    order[k],
-                    vertices,
-                    triangles,
-                    diameters,
-                    tri_edges,
-                    edge_tris,
-                    boundary,
-                    patch_ptr,
-                    patch_triangles,
-                    patch_local,
-                    u1,
-                    u2,
-                    lam,
-                    rho1,
-                    rho2,
-                    mu1,
-                    mu2,
-                    f1c,
-                    f2c,
-                    load1,
-                    load2,
-                    redist,
-                    gamma,
-                    out,
-                    edge_ids,
-                    emap,
-                    cstart,
-                    kmat,
-                    beta,
-                    mred,
-                    fred,
-                    cmat,
-                    crhs,
-                    smat,
-                    mred2,
-                    cmat2,
-                    smat2,
-                    crow,
-                    corig,
-                    mass,
-                    div,
-                    tau,
-                    gloc,
-                    kapj,
-                )
-    # local dof values -> canonical coefficients, in place
-    rows = out.reshape((2 * m, 8))
-    for t in prange(m):
-        i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        x0, y0 = vertices[i0, 0], vertices[i0, 1]
-        x1, y1 = vertices[i1, 0], vertices[i1, 1]
-        x2, y2 = vertices[i2, 0], vertices[i2, 1]
-        h = diameters[t]
-        rt1_dofs_to_coefficients(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, rows, t)
-        rt1_dofs_to_coefficients(x0, y0, x1, y1, x2, y2, i0, i1, i2, h, rows, m + t)
+        lo = int(color_ptr[c])
+        hi = int(color_ptr[c + 1])
+        chunks = _par.ranges(hi - lo, threads, PATCH_GRAIN)
+        _par.run_ranges(patches, [(lo + a, lo + b) for a, b in chunks])
+
+    def coefficients(t0, t1):
+        _coefficients_chunk(vertices, triangles, diameters, out, t0, t1)
+
+    _par.run_ranges(coefficients, _par.ranges(m, threads, TRIANGLE_GRAIN))
     return out
 
 
-@pjit
-def flux_estimators(vertices, triangles, diameters, coef, u1, u2, mu1, mu2, bary, weights):
-    """Per-triangle ``|| mu_i^(1/2) grad u_ih + mu_i^(-1/2) sigma_ih ||_K``, shape (2, M).
-
-    ``coef`` (2, M, 8) holds the canonical RT1 coefficients (see :mod:`.rt1`);
-    the rule must be exact for degree 4 (the integrand's degree).
-
-    Threading: parallel over triangles, each writes its own column.
-    """
-    m = triangles.shape[0]
-    out = np.empty((2, m))
-    for t in prange(m):
+@jit
+def _estimators_chunk(
+    vertices, triangles, diameters, coef, u1, u2, mu1, mu2, bary, weights, out, t0, t1
+):
+    """Rows t0..t1-1 of :func:`flux_estimators` (written into ``out``)."""
+    for t in range(t0, t1):
         i0, i1, i2 = triangles[t, 0], triangles[t, 1], triangles[t, 2]
         x0, y0 = vertices[i0, 0], vertices[i0, 1]
         x1, y1 = vertices[i1, 0], vertices[i1, 1]
@@ -797,4 +874,23 @@ def flux_estimators(vertices, triangles, diameters, coef, u1, u2, mu1, mu2, bary
                 dy = smu * gy + sy / smu
                 acc += weights[q] * (dx * dx + dy * dy)
             out[i, t] = np.sqrt(0.5 * abs(area2) * acc)
+
+
+def flux_estimators(vertices, triangles, diameters, coef, u1, u2, mu1, mu2, bary, weights):
+    """Per-triangle ``|| mu_i^(1/2) grad u_ih + mu_i^(-1/2) sigma_ih ||_K``, shape (2, M).
+
+    ``coef`` (2, M, 8) holds the canonical RT1 coefficients (see :mod:`.rt1`);
+    the rule must be exact for degree 4 (the integrand's degree).
+
+    Threading: the triangles in chunks (:mod:`._par`), each writes its own column.
+    """
+    m = triangles.shape[0]
+    out = np.empty((2, m))
+
+    def rows(t0, t1):
+        _estimators_chunk(
+            vertices, triangles, diameters, coef, u1, u2, mu1, mu2, bary, weights, out, t0, t1
+        )
+
+    _par.run_ranges(rows, _par.ranges(m, _par.n_threads(), TRIANGLE_GRAIN))
     return out

@@ -1,9 +1,9 @@
 """Point location in a triangle mesh with a uniform bucket grid (for mesh-to-mesh transfer)."""
 
 import numpy as np
-from numba import prange
 
-from ._jit import jit, pjit
+from ._jit import jit
+from ._par import parallel_for
 
 __all__ = ["bucket_grid", "locate_points"]
 
@@ -58,7 +58,6 @@ def bucket_grid(vertices, triangles, nbx, nby, x0, y0, dx, dy):
     return ptr, items
 
 
-@pjit
 def locate_points(points, vertices, triangles, ptr, items, nbx, nby, x0, y0, dx, dy):
     """Containing triangle and barycentric coordinates of each point.
 
@@ -75,7 +74,31 @@ def locate_points(points, vertices, triangles, ptr, items, nbx, nby, x0, y0, dx,
     n = points.shape[0]
     tri = np.full(n, -1, dtype=np.int64)
     bary = np.zeros((n, 3))
-    for p in prange(n):
+    parallel_for(
+        _locate_range,
+        n,
+        points,
+        vertices,
+        triangles,
+        ptr,
+        items,
+        nbx,
+        nby,
+        x0,
+        y0,
+        dx,
+        dy,
+        tri,
+        bary,
+    )
+    return tri, bary
+
+
+@jit
+def _locate_range(
+    lo, hi, points, vertices, triangles, ptr, items, nbx, nby, x0, y0, dx, dy, tri, bary
+):
+    for p in range(lo, hi):
         px = points[p, 0]
         py = points[p, 1]
         i = min(max(int((px - x0) / dx), 0), nbx - 1)
@@ -110,4 +133,3 @@ def locate_points(points, vertices, triangles, ptr, items, nbx, nby, x0, y0, dx,
                 s += bary[p, v]
             for v in range(3):
                 bary[p, v] /= s
-    return tri, bary

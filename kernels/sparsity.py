@@ -9,9 +9,9 @@ computed once per mesh; every later assembly is a gather through them.
 """
 
 import numpy as np
-from numba import prange
 
-from ._jit import jit, pjit
+from ._jit import jit
+from ._par import parallel_for
 
 __all__ = ["csr_pattern", "position_map"]
 
@@ -25,9 +25,13 @@ def _row_counts(n, edges):
     return counts
 
 
-@pjit
 def _sort_rows(indptr, indices):
-    for a in prange(indptr.shape[0] - 1):
+    parallel_for(_sort_rows_range, indptr.shape[0] - 1, indptr, indices)
+
+
+@jit
+def _sort_rows_range(lo_row, hi_row, indptr, indices):
+    for a in range(lo_row, hi_row):
         lo, hi = indptr[a], indptr[a + 1]
         for k in range(lo + 1, hi):  # insertion sort: rows have ~7 entries
             x = indices[k]
@@ -78,7 +82,6 @@ def csr_pattern(n, edges, index_dtype):
     return indptr, indices
 
 
-@pjit
 def position_map(triangles, indptr, indices):
     """Offsets of each local entry inside its CSR row.
 
@@ -93,7 +96,13 @@ def position_map(triangles, indptr, indices):
     """
     m = triangles.shape[0]
     offsets = np.empty((m, 3, 3), dtype=np.uint16)
-    for t in prange(m):
+    parallel_for(_position_map_range, m, triangles, indptr, indices, offsets)
+    return offsets
+
+
+@jit
+def _position_map_range(lo_t, hi_t, triangles, indptr, indices, offsets):
+    for t in range(lo_t, hi_t):
         for i in range(3):
             row = triangles[t, i]
             lo, hi = indptr[row], indptr[row + 1]
@@ -108,4 +117,3 @@ def position_map(triangles, indptr, indices):
                     else:
                         b = mid
                 offsets[t, i, j] = a - lo
-    return offsets
