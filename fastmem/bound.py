@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from .errors import DataError, InputTypeError, ParameterError
-from .estimators import _oscillation, combine, global_terms, local_terms
+from .estimators import _oscillation, combine, contact_local_terms, global_terms, local_terms
 from .flux import Fluxes, _mu_array, cross_point_correction, reconstruct
 from .kernels import flux as _kf
 from .linear import residuals
@@ -156,7 +156,10 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     caller already has them for this triple (the adaptive solver does).
     """
     t0 = time.perf_counter()
-    fluxes = reconstruct(scene, u1, u2, lam, r1, r2)
+    # unequal tensions: the contact load is the glued pressure on closed triangles
+    # (proof in fastmem.flux.glued_contact_load); it changes c and the oscillation
+    fluxes = reconstruct(scene, u1, u2, lam, r1, r2, redistribute="glued")
+    contact = fluxes.contact
     # divergence-free correction at checkerboard-like vertices (issue 16): same
     # divergence, still H(div), eta_F no larger (proof in cross_point_correction)
     fluxes = cross_point_correction(scene, u1, u2, fluxes)
@@ -166,6 +169,8 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
         local = local_terms(scene, u1, u2, lam)
     elif local.get("eta_osc1") is None or local.get("eta_osc2") is None:
         local = {**local, "eta_osc1": _oscillation(scene, 1), "eta_osc2": _oscillation(scene, 2)}
+    if contact is not None:
+        local = contact_local_terms(scene, u1, u2, lam, contact, local)
     if glob is None:
         glob = global_terms(scene, u1, u2, lam, r1, r2)
     out = combine(eta_f1, eta_f2, local, glob)

@@ -74,7 +74,7 @@ from .errors import DataError
 from .kernels import cut as _cut
 from .loaddata import integrals
 
-__all__ = ["combine", "friedrichs_constant", "global_terms", "local_terms"]
+__all__ = ["combine", "contact_local_terms", "friedrichs_constant", "global_terms", "local_terms"]
 
 logger = logging.getLogger(__name__)
 
@@ -202,6 +202,37 @@ def local_terms(scene, u1, u2, lam, oscillation=True) -> dict:
         "eta_osc1": _oscillation(scene, 1) if oscillation else None,
         "eta_osc2": _oscillation(scene, 2) if oscillation else None,
     }
+
+
+def contact_local_terms(scene, u1, u2, lam, contact, local) -> dict:
+    r"""``local`` with c and the oscillation of the glued contact load (issue 16).
+
+    With the contact load :math:`\chi` of :func:`fastmem.flux.glued_contact_load`
+    the proof of docs/method.md §5 runs with :math:`\ell = \chi + \lambda^-` in
+    place of :math:`\hat\lambda` (proof there):
+
+    - ``eta_C``: :math:`(\ell, (u_{1h} - u_{2h})^+)_K`; :math:`\ell` is the P1
+      function of nodal values ``contact.open_load(lam)`` on every triangle
+      where the gap is positive somewhere (on the closed triangles the product
+      vanishes whatever :math:`\ell` is), so the same exact cut integration
+      applies with these nodal values;
+    - ``eta_osc1``, ``eta_osc2``: on the triangles ``contact.tri`` the oscillation
+      of :math:`f_1 + \chi` and :math:`f_2 - \chi` (``contact.osc1``,
+      ``contact.osc2``); elsewhere :math:`\chi` is P1 and the data oscillation
+      of ``local`` applies.
+    """
+    mesh = scene.mesh
+    lam = _nodal(mesh, lam, "lam").copy()
+    lam[mesh.boundary_vertex_mask] = 0.0
+    gap = _nodal(mesh, u1, "u1") - _nodal(mesh, u2, "u2")
+    mu2 = np.ascontiguousarray(np.atleast_1d(np.asarray(scene.mu2, dtype=np.float64)))
+    ell = np.ascontiguousarray(contact.open_load(lam))
+    _, eta_c = _cut.contact_terms(mesh.vertices, mesh.triangles, gap, ell, mu2)
+    osc1 = np.array(local["eta_osc1"], dtype=np.float64)
+    osc2 = np.array(local["eta_osc2"], dtype=np.float64)
+    osc1[contact.tri] = contact.osc1
+    osc2[contact.tri] = contact.osc2
+    return {**local, "eta_C": eta_c, "eta_osc1": osc1, "eta_osc2": osc2}
 
 
 def _mass_matrix(scene):

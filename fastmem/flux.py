@@ -75,6 +75,8 @@ class Fluxes:
 
     mesh: object
     coef: np.ndarray
+    #: the glued contact load the fluxes equilibrate (``redistribute="glued"``), else None
+    contact: object = None
 
     def _scaled(self, tri, x, y):
         mesh = self.mesh
@@ -323,7 +325,26 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
         consts.append(float(f) if mom is None else 0.0)
         moments.append(np.zeros((1, 3, 3)) if mom is None else mom)
     order, color_ptr = _coloring(mesh)
-    flags, gamma = contact_redistribution(scene, u1, u2, lam_i) if redistribute else (None, None)
+    contact = None
+    if redistribute == "glued":
+        flags = gamma = None
+        contact = glued_contact_load(scene, u1, u2, lam_i)
+        if contact is not None:
+            # the kernel takes the load of patch a on K as moments (psi_a f, lambda_j)_K
+            # plus lam_a psi_a: the glued vertices get lam 0 and chi^a in the moments
+            areas = mesh.areas
+            mij = (areas / 12.0)[:, None, None] * (1.0 + np.eye(3))[None]
+            for i in (0, 1):
+                mom = moments[i] if consts[i] == 0.0 and moments[i].shape[0] > 1 else None
+                full = consts[i] * mij if mom is None else mom.copy()
+                full[contact.tri] += contact.moments if i == 0 else -contact.moments
+                moments[i] = full
+                consts[i] = 0.0
+            lam_i = np.where(contact.flags, 0.0, lam_i)
+    elif redistribute:
+        flags, gamma = contact_redistribution(scene, u1, u2, lam_i)
+    else:
+        flags = gamma = None
     coef = _kf.reconstruct_colored(
         order,
         color_ptr,
@@ -352,7 +373,7 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
         int(np.diff(mesh.patch_ptr).max()),
         numba.get_num_threads(),
     )
-    return Fluxes(mesh=mesh, coef=coef)
+    return Fluxes(mesh=mesh, coef=coef, contact=contact)
 
 
 # --- divergence-free correction at non-quasi-monotone vertices (issue 16) -------------
@@ -610,4 +631,357 @@ def cross_point_correction(scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RING
         c[:, 4] += h * slope[:, 1, 0]
         c[:, 5] += h * slope[:, 1, 1]
         coef[i, rt] = c
-    return fluxes if coef is None else Fluxes(mesh=mesh, coef=coef)
+    return fluxes if coef is None else Fluxes(mesh=mesh, coef=coef, contact=fluxes.contact)
+
+
+# --- glued contact load for the bound (issue 16, constant and per-triangle tensions) ---
+
+#: bisection steps for the shift gamma_a of the vertices whose shifted glued
+#: pressure is clipped at 0 (the final mass is made exact by a rescaling)
+GLUED_BISECTION_STEPS = 60
+#: partially closed patches: constant of the cost model of :func:`_keep_plain`
+#: (measured working range 0.01 ... 1, docs/heterogeneous.md §8)
+GLUED_COST = 0.1
+
+
+@dataclass
+class ContactLoad:
+    r"""The contact load :math:`\chi` of the bound's flux (:func:`glued_contact_load`).
+
+    Attributes
+    ----------
+    flags : ndarray of bool, shape (N,)
+        Glued vertices a: :math:`\chi^a = s_a\psi_a(\zeta + \gamma_a m_K)^+` on
+        the closed triangles of their patch and 0 on the others; every other
+        vertex keeps :math:`\lambda_a \psi_a`.
+    gamma, scale : ndarray of shape (N,)
+        :math:`\gamma_a` and :math:`s_a > 0` on glued vertices (0 elsewhere).
+    tri : ndarray of int, shape (S,)
+        The closed triangles with at least one glued vertex (where :math:`\chi`
+        is not :math:`\sum_a \lambda_a\psi_a`).
+    moments : ndarray of shape (S, 3, 3)
+        ``(chi^a, lambda_j)_K`` for a = ``triangles[K, i]`` glued (row i), 0 in
+        the rows of the other vertices.
+    osc1, osc2 : ndarray of shape (S,)
+        :math:`\frac{h_K}{\pi}\mu_{i,K}^{-1/2}\|q_i - \Pi_K q_i\|_K` with
+        :math:`q_1 = f_1 + \chi`, :math:`q_2 = f_2 - \chi` on those triangles.
+    ell_min : float
+        Smallest value of :math:`\ell = \chi + \lambda^-` at the points where it
+        was evaluated on ``tri`` (vertices and quadrature points): >= 0.
+    """
+
+    flags: np.ndarray
+    gamma: np.ndarray
+    scale: np.ndarray
+    tri: np.ndarray
+    moments: np.ndarray
+    osc1: np.ndarray
+    osc2: np.ndarray
+    ell_min: float
+
+    def open_load(self, lam) -> np.ndarray:
+        r"""Nodal values of :math:`\ell` on the triangles that are not closed.
+
+        There :math:`\ell = \sum_{a\ \mathrm{plain}} \max(\lambda_a, 0)\psi_a`
+        (glued vertices put nothing on open triangles and have
+        :math:`\lambda_a > 0`): the P1 function whose product with the gap is c.
+        """
+        return np.where(self.flags, 0.0, np.maximum(lam, 0.0))
+
+
+def _load_values(scene, i, tri, x, y, bary):
+    """Values of f_i at the points ``(x, y)`` (S, nq) of triangles ``tri``."""
+    from .callables import evaluate_callable
+
+    f = scene.f1 if i == 1 else scene.f2
+    kind = scene.data_kind(f"f{i}")
+    if kind == "callable":
+        return evaluate_callable(f, x, y, f"f{i}")
+    if kind == "constant":
+        return np.full(x.shape, float(f))
+    return np.asarray(f, dtype=np.float64)[scene.mesh.triangles[tri]] @ bary.T
+
+
+class _Glued:
+    r"""The glued pressure :math:`\zeta \ge 0` on a set of triangles, shifted per vertex.
+
+    :math:`\chi^* = (\mu_{1,K} f_2 - \mu_{2,K} f_1)/(\mu_{1,K} + \mu_{2,K})`.
+    Callable loads: values at the points of the load rule (degree
+    ``scene.load_degree``), and the shifted pressure of vertex a is
+    :math:`(\chi^* + \gamma_a m_K)^+` at those points.  Constant and per-vertex
+    loads: :math:`\chi^*` is P1 on each triangle and the shifted pressure is the
+    P1 interpolant of its clipped vertex values :math:`(\chi^*(x_k) + \gamma_a
+    m_K)^+`, with the rule of degree 4 (exact for every integral below).
+    Either way it is >= 0 everywhere and its moments are what the kernel gets.
+    """
+
+    def __init__(self, scene, tri, mu1, mu2):
+        from .quadrature import quadrature_points, triangle_rule
+
+        mesh = scene.mesh
+        self.callable = "callable" in (scene.data_kind("f1"), scene.data_kind("f2"))
+        self.bary, self.w = triangle_rule(scene.load_degree if self.callable else 4)
+        t = mesh.triangles[tri]
+        x, y = quadrature_points(mesh.vertices, t, self.bary)
+        self.f1 = _load_values(scene, 1, tri, x, y, self.bary)
+        self.f2 = _load_values(scene, 2, tri, x, y, self.bary)
+        m1, m2 = mu1[:, None], mu2[:, None]
+        if self.callable:
+            self.nodes = (m1 * self.f2 - m2 * self.f1) / (m1 + m2)  # (S, nq) point values
+        else:
+            corners = np.eye(3)
+            xc, yc = quadrature_points(mesh.vertices, t, corners)
+            g1 = _load_values(scene, 1, tri, xc, yc, corners)
+            g2 = _load_values(scene, 2, tri, xc, yc, corners)
+            self.nodes = (m1 * g2 - m2 * g1) / (m1 + m2)  # (S, 3) vertex values
+        self.m = mu1 * mu2 / (mu1 + mu2)
+        self.areas = mesh.areas[tri]
+        self.outer = (self.bary[:, :, None] * self.bary[:, None, :]).reshape(-1, 9)
+
+    def restrict(self, rows):
+        """Return the same pressure on the triangles ``tri[rows]`` only."""
+        out = _Glued.__new__(_Glued)
+        out.__dict__.update(self.__dict__)
+        out.nodes, out.m, out.areas = self.nodes[rows], self.m[rows], self.areas[rows]
+        out.f1, out.f2 = self.f1[rows], self.f2[rows]
+        return out
+
+    def points(self, shift):
+        """Shifted, clipped pressure at the rule's points: shift (S, 3) -> (S, 3, nq)."""
+        v = np.maximum(self.nodes[:, None, :] + (shift * self.m[:, None])[:, :, None], 0.0)
+        return v if self.callable else v @ self.bary.T
+
+    def masses(self, shift, rows=None):
+        """``(psi_i zeta_i, 1)_K`` for the three vertices: (S, 3) (or on ``rows``)."""
+        zi = self.points(shift)
+        b, w = self.bary, self.w
+        ar = self.areas if rows is None else self.areas[rows]
+        return np.einsum("kiq,q,qi->ki", zi, w, b) * ar[:, None]
+
+    def moments(self, shift):
+        """``(psi_i zeta_i, lambda_j)_K``: (S, 3, 3)."""
+        zi = self.points(shift)
+        b, w = self.bary, self.w
+        return np.einsum("kiq,q,qi,qj->kij", zi, w, b, b) * self.areas[:, None, None]
+
+
+def _keep_plain(scene, gap, lam, closed, partial, mu1, mu2) -> np.ndarray:
+    r"""Return the partially closed patches that keep :math:`\lambda_a\psi_a` (bool (N,)).
+
+    Gluing a vertex a whose patch also has open triangles (gap > 0 somewhere)
+    moves its load off those triangles.  That saves
+    :math:`\lambda_a(\psi_a, (u_{1h} - u_{2h})^+)` in c (which enters η like
+    twice a squared flux term), and costs the glued pressure
+    :math:`D^{open}_a = (\psi_a\chi^{*+}, 1)_{open}` that the open triangles
+    no longer receive and that the fluxes must carry across about one cell,
+    roughly ``GLUED_COST`` :math:`(\mu_1^{-1} + \mu_2^{-1}) (D^{open}_a)^2`.
+    The vertex stays plain when the second exceeds the first.  Manufactured
+    family: the pressure vanishes at the free boundary, :math:`D^{open}` is
+    small and c large relative to the error, so these vertices are glued; a
+    floppy boundary layer (checkerboard, small c) concentrates the pressure at
+    the edge of contact, where gluing would cost more.  The choice only
+    affects sharpness; any choice keeps the guarantee.
+    """
+    mesh = scene.mesh
+    n = mesh.n_vertices
+    triangles = mesh.triangles
+    osub = np.flatnonzero(~closed & partial[triangles].any(axis=1))
+    ot = triangles[osub]
+    og = _Glued(scene, osub, mu1[osub], mu2[osub])
+    om = np.where(partial[ot], og.masses(np.zeros((osub.size, 3))), 0.0)
+    d_open = np.bincount(ot.ravel(), weights=om.ravel(), minlength=n)
+    kappa = np.zeros(n)
+    np.maximum.at(kappa, ot.ravel(), np.repeat(1.0 / mu1[osub] + 1.0 / mu2[osub], 3))
+    # (psi_a, gap^+)_K by the vertex-weighted rule (|K|/12)(sum + own) on the positive part
+    gp = np.maximum(gap[ot], 0.0)
+    gpsi = (gp.sum(axis=1, keepdims=True) + gp) * (mesh.areas[osub] / 12.0)[:, None]
+    g_open = np.bincount(ot.ravel(), weights=gpsi.ravel(), minlength=n)
+    return partial & (GLUED_COST * kappa * d_open**2 > 2.0 * lam * g_open)
+
+
+def _oscillation_at_points(q, bary, w, areas):
+    """``||q - Pi_K q||_K`` from point values q (S, nq), as in fastmem.callables."""
+    scale = np.abs(q).max(axis=1)
+    scale[scale == 0.0] = 1.0
+    qs = q / scale[:, None]
+    avg = (qs * w) @ bary
+    coef = 12.0 * avg - 3.0 * avg.sum(axis=1, keepdims=True)
+    diff = qs - coef @ bary.T
+    return scale * np.sqrt(np.maximum((diff * diff) @ w, 0.0) * areas)
+
+
+def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
+    r"""Contact load of the bound's flux: the glued pressure, patch by patch, exact masses.
+
+    Parameters
+    ----------
+    scene : Scene
+    u1, u2 : ndarray of shape (N,)
+    lam : ndarray of shape (N,)
+        Nodal multiplier, zero on the boundary.
+
+    Returns
+    -------
+    ContactLoad, or None when no vertex qualifies (then the load is
+    :math:`\lambda_a\psi_a` everywhere, docs/method.md §4 as written).
+
+    Notes
+    -----
+    Only the mass :math:`B_a\lambda_a` of the contact load :math:`\chi^a` of an
+    interior patch is fixed (both membranes' patch problems need it); its shape
+    and its support inside the patch are free.  Call a triangle *closed* when
+    the gap :math:`u_{1h} - u_{2h}` is :math:`\le 0` at its three vertices (then
+    :math:`(u_{1h} - u_{2h})^+ = 0` on it).  A vertex a is *glued* when it is
+    interior, :math:`\lambda_a > 0`, :math:`\mu_{1,K} \ne \mu_{2,K}` on some
+    triangle of its patch and the patch has a closed triangle (if it also has
+    open ones, unless the cost model of :func:`_keep_plain` prefers the plain
+    load); then
+
+    .. math::
+
+        \chi^a = s_a\,\psi_a\,(\chi^* + \gamma_a m_K)^+ \text{ on the closed
+        triangles of } \omega_a, \quad 0 \text{ on the others},
+
+    with :math:`\chi^* = (\mu_{1,K} f_2 - \mu_{2,K} f_1)/(\mu_{1,K} + \mu_{2,K})`
+    the pressure two glued membranes exert on each other (the pointwise
+    minimiser of :math:`\mu_1^{-1}|f_1 + \chi|^2 + \mu_2^{-1}|f_2 - \chi|^2`),
+    :math:`m_K = \mu_{1,K}\mu_{2,K}/(\mu_{1,K} + \mu_{2,K})`, the shift
+    :math:`\gamma_a` solving :math:`(\chi^a, 1) = B_a\lambda_a` with
+    :math:`s_a = 1` (closed form when nothing is clipped, else bisection) and
+    :math:`s_a > 0` making that mass exact to round-off.  (For constant and
+    per-vertex loads the clipped function is the P1 interpolant of its vertex
+    values, see :class:`_Glued`.)  Every other vertex keeps
+    :math:`\chi^a = \lambda_a\psi_a`.
+
+    Why it is sharp.  The sum of the two nodal equations at a vertex in
+    contact gives :math:`B_a\lambda_a = (\psi_a\chi^*, 1) + m(A w_h)_a`
+    (constant tensions, :math:`w_h` the discrete gap): the glued pressure has
+    the right mass up to a defect of the size of the floppy tension
+    :math:`m \approx \mu_{floppy}`, which :math:`\gamma_a m_K \psi_a` spreads
+    as a P1 function.  The data of membrane i become :math:`\mu_i/(\mu_1 +
+    \mu_2)` times those of the glued membrane plus that defect: the floppy
+    membrane no longer equilibrates the lumping mismatch of
+    :math:`\lambda_a\psi_a` (flux term) nor the kink of the pressure
+    (oscillation: :math:`f_1 + \chi^* = \mu_1(f_1 + f_2)/(\mu_1 + \mu_2)`),
+    which the estimator weights by :math:`\mu_{floppy}^{-1/2}`.  Nothing is
+    cut from a projected piece (the old mass defect), and no load sits on open
+    triangles, where it would meet a positive gap in c.
+
+    Why the bound holds (the proof of docs/method.md §5 with
+    :math:`\ell = \chi + \lambda^-` in place of :math:`\hat\lambda`):
+
+    1. Compatibility: :math:`(\chi^a, 1)_{\omega_a} = B_a\lambda_a`, so every
+       interior patch problem is solvable as before, and, since
+       :math:`\sum_a\psi_a = 1`, :math:`\nabla\cdot\sigma_{1h} = \Pi(f_1 + \chi)
+       - \rho_1`, :math:`\nabla\cdot\sigma_{2h} = \Pi(f_2 - \chi) - \rho_2`
+       (Π the L2 projection onto P1 on each triangle).
+    2. Residuals: :math:`r_1 = f_1 + \ell - \nabla\cdot\sigma_{1h} = [(f_1 + \chi)
+       - \Pi(f_1 + \chi)] + \rho_1 + \lambda^-` and :math:`r_2 = [(f_2 - \chi) -
+       \Pi(f_2 - \chi)] + \rho_2 - \lambda^-`.  The brackets are orthogonal to
+       P1(K): Poincaré on K gives the oscillation
+       :math:`\frac{h_K}{\pi}\mu_{i,K}^{-1/2}\|q_i - \Pi_K q_i\|_K` of
+       :math:`q_1 = f_1 + \chi`, :math:`q_2 = f_2 - \chi` (that of
+       :math:`f_i` wherever :math:`\chi` is P1, i.e. off ``tri``).  The P1
+       remainders are those of §5: :math:`\eta_{glob}` is unchanged.
+    3. Contact: :math:`\ell \ge 0` pointwise (:math:`s_a > 0`, the clipped
+       pressure is >= 0, plain vertices contribute
+       :math:`\hat\lambda_a\psi_a`), so :math:`(\lambda - \ell, e_1 - e_2) \le
+       (\ell, (u_{1h} - u_{2h})^+)`.  On closed triangles the gap part
+       vanishes; on the others :math:`\ell` is the P1 function of nodal values
+       :meth:`ContactLoad.open_load` (:math:`\hat\lambda_a` at plain vertices,
+       0 at glued ones), so c is computed exactly as in §5 with these values,
+       and never exceeds the c of :math:`\hat\lambda`.
+    4. Flux terms: Cauchy–Schwarz as in §5.  Hence :math:`|||e|||^2 \le
+       a|||e||| + c` with the oscillation of step 2 and the c of step 3.
+
+    Exactness: for constant and per-vertex loads every integral above is exact;
+    for callable loads the moments, the oscillation and the pressure use the
+    points of the load rule, so the bound holds up to that rule's error on
+    the data, as everywhere else with callable loads.
+    """
+    mesh = scene.mesh
+    if np.ndim(scene.mu1) == 0 and np.ndim(scene.mu2) == 0 and scene.mu1 == scene.mu2:
+        return None
+    n = mesh.n_vertices
+    mu1 = np.broadcast_to(np.asarray(scene.mu1, dtype=np.float64), (mesh.n_triangles,))
+    mu2 = np.broadcast_to(np.asarray(scene.mu2, dtype=np.float64), (mesh.n_triangles,))
+    triangles = mesh.triangles
+    unequal = np.bincount(triangles[mu1 != mu2].ravel(), minlength=n) > 0
+    lam = np.asarray(lam, dtype=np.float64)
+    gap = np.asarray(u1, dtype=np.float64) - np.asarray(u2, dtype=np.float64)
+    closed = (gap[triangles] <= 0.0).all(axis=1)
+    flags = unequal & (lam > 0.0) & ~mesh.boundary_vertex_mask
+    flags &= np.bincount(triangles[closed].ravel(), minlength=n) > 0
+    partial = flags & (np.bincount(triangles[~closed].ravel(), minlength=n) > 0)
+    if partial.any():
+        flags &= ~_keep_plain(scene, gap, lam, closed, partial, mu1, mu2)
+    if not flags.any():
+        return None
+    sub = np.flatnonzero(closed & flags[triangles].any(axis=1))
+    tri = triangles[sub]
+    gl = _Glued(scene, sub, mu1[sub], mu2[sub])
+    target = mesh.lumped_mass * lam
+    zero = np.zeros((sub.size, 3))
+    d0 = np.bincount(tri.ravel(), weights=gl.masses(zero).ravel(), minlength=n)
+    wsum = np.bincount(tri.ravel(), weights=np.repeat(gl.m * gl.areas / 3.0, 3), minlength=n)
+    gamma = np.where(flags, (target - d0) / np.where(wsum > 0.0, wsum, 1.0), 0.0)
+    # clipped somewhere on the patch?  then the mass is not linear in gamma: bisection
+    low = gl.nodes.min(axis=1)  # smallest value of chi* per triangle (points or vertices)
+    clip_k = low[:, None] + gamma[tri] * gl.m[:, None] < 0.0  # (S, 3)
+    clip = np.zeros(n, dtype=bool)
+    clip[tri[clip_k]] = True
+    clip &= flags
+    if clip.any():
+        rows = np.flatnonzero(clip[tri].any(axis=1))
+        rt = tri[rows]
+        high = gl.nodes.max(axis=1)[rows]
+        # all of the patch clipped (mass 0) at gamma = -max chi*/m_K: a bracket
+        lo = np.full(n, np.inf)
+        np.minimum.at(lo, rt.ravel(), np.repeat(-np.maximum(high, 0.0) / gl.m[rows], 3))
+        lo = np.where(clip, lo, 0.0)
+        hi = np.where(clip, gamma, 0.0)
+        sub_gl = gl.restrict(rows)
+        for _ in range(GLUED_BISECTION_STEPS):
+            mid = 0.5 * (lo + hi)
+            mass = np.bincount(rt.ravel(), weights=sub_gl.masses(mid[rt]).ravel(), minlength=n)
+            over = mass > target
+            hi = np.where(clip & over, mid, hi)
+            lo = np.where(clip & ~over, mid, lo)
+        gamma = np.where(clip, hi, gamma)  # mass >= target: the rescaling below is <= 1
+    shift = np.where(flags[tri], gamma[tri], 0.0)
+    mom = gl.moments(shift)
+    d = np.bincount(tri.ravel(), weights=mom.sum(axis=2).ravel(), minlength=n)
+    flags &= d > 0.0
+    scale = np.zeros(n)
+    scale[flags] = target[flags] / d[flags]
+    keep = flags[tri].any(axis=1)
+    sub, tri, mom, shift = sub[keep], tri[keep], mom[keep], shift[keep]
+    s_loc = np.where(flags[tri], scale[tri], 0.0)  # (S, 3)
+    moments = s_loc[:, :, None] * mom
+    # chi at the points: sum_glued s_a lambda_a zeta_a + sum_plain lam_a lambda_a
+    gl = gl.restrict(keep)
+    bary, w = gl.bary, gl.w
+    zi = gl.points(shift)  # (S, 3, nq)
+    glued_part = np.einsum("ki,kiq,qi->kq", s_loc, zi, bary)
+    plain = np.where(flags[tri], 0.0, lam[tri])
+    chi = glued_part + plain @ bary.T
+    lam_minus = np.maximum(lam, 0.0) - lam
+    ell = chi + lam_minus[tri] @ bary.T
+    ell_min = float(ell.min()) if ell.size else 0.0
+    if ell_min < -1e-12 * max(float(np.abs(ell).max()), 1e-300):  # pragma: no cover
+        raise AssertionError(f"glued contact load is negative: {ell_min:.3e}")
+    areas = mesh.areas[sub]
+    h = mesh.diameters[sub] / np.pi
+    f1q, f2q = gl.f1, gl.f2
+    osc1 = h * _oscillation_at_points(f1q + chi, bary, w, areas) / np.sqrt(mu1[sub])
+    osc2 = h * _oscillation_at_points(f2q - chi, bary, w, areas) / np.sqrt(mu2[sub])
+    return ContactLoad(
+        flags=flags,
+        gamma=np.where(flags, gamma, 0.0),
+        scale=scale,
+        tri=sub,
+        moments=moments,
+        osc1=osc1,
+        osc2=osc2,
+        ell_min=ell_min,
+    )
