@@ -28,7 +28,6 @@ from fastmem.estimators import local_terms
 from fastmem.linear import residuals
 from fastmem.quadrature import triangle_rule
 
-
 CASES = {
     # name: (mesh, scene builder, perturb)
     "manufactured-1e-6-1e6": (
