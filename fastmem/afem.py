@@ -16,8 +16,9 @@ until the guaranteed bound of the returned triple is below the target:
    eta_lin + eta_alg``; with the default gamma = 0.1 about 5 % of eta), so
    with ``"inexact"`` a mesh expected to be the last one (its predicted
    ``eta_disc``, ``eta_disc`` of the previous mesh times ``(N_prev /
-   N)^(1/2)``, meets the target) is solved with gamma = :data:`FINAL_GAMMA`
-   (0.03, unless the user's gammas are smaller), and a mesh whose ``eta``
+   N)^(1/2)``, meets the target, or a mesh made by the landing rule below) is
+   solved with gamma = :data:`FINAL_GAMMA` (0.01, unless the user's gammas are
+   smaller), and a mesh whose ``eta``
    misses the target while ``eta - eta_alg - eta_lin`` meets it is solved on,
    warm-started, with that gamma before any refinement: a tighter solve costs
    a fraction of a level, a refinement a level 1.3 to 1.4 times larger.
@@ -44,7 +45,24 @@ until the guaranteed bound of the returned triple is below the target:
    the number of vertices).  Then ``converged=False`` and the reason is in
    ``result.parameters["adaptivity"]["stop_reason"]``.
 4. **MARK** the fewest triangles holding a fraction ``theta`` of
-   ``sum eta_K^2`` (Dörfler, :func:`fastmem.refine.dorfler_mark`, O(M)).
+   ``sum eta_K^2`` (Dörfler, :func:`fastmem.refine.dorfler_mark`, O(M)),
+   unless the target is predicted within reach of that mesh: then **land**.
+   The mesh part of the bound (:func:`mesh_part`: ``eta`` without its solver
+   terms, which the tight last solve makes small) behaves like ``C N^(-1/2)``,
+   so the target is met at about ``N_aim = N (eta_mesh / (LANDING_AIM *
+   target))^2`` vertices (:data:`LANDING_AIM` = 0.97: a margin for the scatter
+   of ``eta sqrt(N)`` between meshes, a few per cent, and for the solver's
+   share).  If ``N_aim`` is below the vertex count of Dörfler's mesh (the
+   closure kernel counts it before refining), the largest indicators are
+   marked, as many as give about ``N_aim - N`` new vertices (top-k by
+   :func:`numpy.argpartition` and a closure count per trial, secant steps on
+   k, O(M) each, at most 8 trials).  Dörfler's mesh overshoots the target by
+   up to its whole growth (1.3-1.4x the vertices at theta = 0.5); the landed
+   mesh by the margin.  Aiming beyond Dörfler's mesh (:data:`LANDING_MAX_GROWTH`
+   > 1, one large step instead of two) was measured and is off: the constant C
+   after a step larger than Dörfler's scattered more (L-shape: more vertices at
+   all three benchmark tolerances).  ``parameters["adaptivity"]["landings"]``
+   lists the landings (level, vertices aimed at, vertices made).
 5. **REFINE** by newest-vertex bisection with conforming closure
    (:func:`fastmem.refine.refine_marked`); the scene moves to the new mesh by
    :func:`refine_scene` (per-triangle mu inherited, per-vertex data
@@ -73,8 +91,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from .kernels import nvb as _kn
 from .levels import solve_levels
-from .refine import dorfler_mark, refine_marked
+from .refine import _refinement_edges, dorfler_mark, refine_marked
 from .scene import Scene
 
 __all__ = [
@@ -172,7 +191,7 @@ def _level_options(options):
 
 #: gamma_alg and gamma_lin on a mesh expected to be the last one, and when a level misses
 #: the target only by its algebraic and linearisation parts (module docstring); None: off.
-FINAL_GAMMA = 0.03
+FINAL_GAMMA = 0.01
 
 
 def _with_gamma(options, gamma):
@@ -265,13 +284,118 @@ def _table(rows) -> dict:
     }
 
 
-def _next_mesh(scene, result, adapt):
-    """MARK and REFINE: (marked fraction, new scene, refinement)."""
-    marked = dorfler_mark(indicators(result.estimate), adapt.theta)
+#: Landing (module docstring): a refinement predicted to reach the target aims at
+#: ``mesh_part(eta) = LANDING_AIM * target`` ...
+LANDING_AIM = 0.97
+#: ... when the vertices this needs are at most LANDING_MAX_GROWTH times the current ones
+#: (or at most Dörfler's next mesh); None: landing off (every mesh from Dörfler marking).
+LANDING_MAX_GROWTH = 1.0
+#: The marked set of a landing step has a closure within this fraction of the new vertices
+#: aimed at (at most _LANDING_TRIES closure counts).
+_LANDING_TOL = 0.01
+_LANDING_TRIES = 8
+
+
+def mesh_part(totals) -> float:
+    r"""Return the bound ``eta`` of an estimate without its solver parts (what refinement controls).
+
+    ``eta`` is the positive root of :math:`x^2 = a x + c` plus :math:`\eta_{nc}`, with
+    :math:`a = (\sum_K d_{1,K}^2 + (d_{2,K} + \eta_{nc,K})^2)^{1/2} + |(\eta_{glob,1},
+    \eta_{glob,2})|` (docs/method.md §6).  Without the non-conformity and the global terms
+    (both vanish as the solver converges) :math:`a_0 = \eta_{disc} - c^{1/2}`; the result is
+    the root of :math:`x^2 = a_0 x + c`.  Its local terms all scale alike under refinement
+    (c like the squares), so it is homogeneous of degree one in them.
+    """
+    c = max(float(totals["c"]), 0.0)
+    a0 = max(float(totals["eta_disc"]) - np.sqrt(c), 0.0)
+    return 0.5 * (a0 + np.sqrt(a0 * a0 + 4.0 * c))
+
+
+def _landing_vertices(row, target, n_dorfler):
+    """Vertices of the next mesh for the landing rule, or None (Dörfler's mesh).
+
+    With the mesh part of the bound (:func:`mesh_part`) ~ N^(-1/2) on adapted meshes, the
+    target is met at about ``N (eta_mesh / target)^2`` vertices; the rule aims at
+    ``LANDING_AIM * target`` (a margin for the solver's share of the last mesh and for the
+    scatter of eta sqrt(N) between meshes: a miss costs one more mesh).
+    """
+    if LANDING_MAX_GROWTH is None or not target > 0.0:
+        return None
+    n = row["n_vertices"]
+    need = n * (row["eta_mesh"] / (LANDING_AIM * target)) ** 2
+    if need > n * max(LANDING_MAX_GROWTH, n_dorfler / n):
+        return None  # not yet in reach: a Dörfler step
+    # eta_disc already at the aim (eta missed it by its solver share): a small step
+    return max(need, n * 1.05)
+
+
+def _mark_vertices(mesh, eta2, want, k0, n0):
+    """Mark the k largest indicators whose NVB closure bisects about ``want`` edges.
+
+    ``k0`` triangles (Dörfler's set) gave ``n0`` bisected edges.  Each trial is a top-k
+    selection (:func:`numpy.argpartition`, O(M)) and a closure count (the kernel of
+    :func:`~fastmem.refine.refine_marked`, O(M)), at most ``_LANDING_TRIES`` of them:
+    secant steps on k inside the bracket found so far.
+    """
+    m = eta2.size
+    te, et = mesh.triangle_edges, mesh.edge_triangles
+    ref = _refinement_edges(mesh, None)
+
+    def top(k):
+        mask = np.zeros(m, dtype=bool)
+        mask[np.argpartition(eta2, m - k)[m - k :]] = True
+        return mask
+
+    lo, hi = (0, 0), (m, None)
+    if n0 <= want:
+        lo = (k0, n0)
+    else:
+        hi = (k0, n0)
+    best = None
+    k = k0 * want / max(n0, 1)
+    for _ in range(_LANDING_TRIES):
+        k = int(min(max(round(k), lo[0] + 1), hi[0] - 1 if hi[1] is not None else m))
+        mask = top(k)
+        count = int(np.count_nonzero(_kn.closure(te, et, ref, mask)))
+        if best is None or abs(count - want) < abs(best[1] - want):
+            best = (mask, count)
+        if abs(count - want) <= _LANDING_TOL * want or k >= m:
+            break
+        if count < want:
+            lo = (k, count)
+        else:
+            hi = (k, count)
+        if hi[1] is None:  # no upper bracket yet: proportional step from the lower one
+            k = k * want / max(count, 1)
+        elif hi[0] - lo[0] <= 1:
+            break
+        else:
+            k = lo[0] + (want - lo[1]) * (hi[0] - lo[0]) / (hi[1] - lo[1])
+    return best[0]
+
+
+def _next_mesh(scene, result, adapt, row=None, target=None):
+    """MARK and REFINE: (marked fraction, new scene, refinement, landing aim or None)."""
+    eta2 = indicators(result.estimate)
+    marked = dorfler_mark(eta2, adapt.theta)
+    mesh = scene.mesh
+    aim = None
+    if row is not None:
+        k0 = int(np.count_nonzero(marked))
+        n0 = int(
+            np.count_nonzero(
+                _kn.closure(
+                    mesh.triangle_edges, mesh.edge_triangles, _refinement_edges(mesh, None), marked
+                )
+            )
+        )
+        aim = _landing_vertices(row, target, mesh.n_vertices + n0)
+        if aim is not None:
+            marked = _mark_vertices(mesh, eta2, aim - mesh.n_vertices, k0, n0)
     # validate=False skips only the duplicate-vertex search (new vertices are midpoints of
     # distinct edges); the edge checks run when the solver first asks for the edges
-    mesh, refinement = refine_marked(scene.mesh, marked, validate=False)
-    return float(marked.mean()), mesh, refinement
+    fine, refinement = refine_marked(mesh, marked, validate=False)
+    return float(marked.mean()), fine, refinement, aim
 
 
 def _stop_before_refining(level, adapt, t_start):
@@ -305,16 +429,17 @@ def solve_to_tolerance(scene, options, init, timings):
     level_options = _level_options(options)
     t_start = time.perf_counter()
     merged, rows = _Merged(), []
-    triple, prolonged, hint = init, False, None
+    triple, prolonged, hint, landing = init, False, None, False
     tight = _with_gamma(level_options, FINAL_GAMMA)  # None: nothing to tighten
     refine_total = 0.0
+    landings = []
     level = 0
     while True:
         t0 = time.perf_counter()
         # a mesh whose predicted eta_disc meets the target is probably the last one: solve
         # it tighter (eta_alg, eta_lin are part of the bound the target is checked against)
         expected = None if hint is None else _target(adapt, rows[-1]["energy_norm"])
-        last_expected = tight is not None and hint is not None and hint <= expected
+        last_expected = tight is not None and hint is not None and (landing or hint <= expected)
         opts = tight if last_expected else level_options
         result = solve_levels(scene, opts, triple, {}, prolonged=prolonged, disc_hint=hint)
         energy = energy_norm(scene, result.u1, result.u2)
@@ -345,7 +470,11 @@ def solve_to_tolerance(scene, options, init, timings):
             reason = _stop_before_refining(level, adapt, t_start)
         if reason is None:
             t1 = time.perf_counter()
-            fraction, mesh, refinement = _next_mesh(scene, result, adapt)
+            parts = dict(row, eta_mesh=mesh_part(result.estimate.totals))
+            fraction, mesh, refinement, aim = _next_mesh(scene, result, adapt, parts, target)
+            landing = aim is not None  # the next mesh is aimed at the target: solve it tight
+            if landing:
+                landings.append({"level": level, "aim": int(aim), "vertices": mesh.n_vertices})
             reason = _stop_after_refining(mesh, row, adapt, t_start)
             if reason is None:
                 new_scene = refine_scene(scene, mesh, refinement)
@@ -367,7 +496,9 @@ def solve_to_tolerance(scene, options, init, timings):
     timings["refine"] = refine_total
     timings["solve"] = time.perf_counter() - t_start - refine_total
     result.timings = timings
-    return _finish(result, merged, rows, adapt, reached and ok, reason)
+    result = _finish(result, merged, rows, adapt, reached and ok, reason)
+    result.parameters["adaptivity"]["landings"] = landings
+    return result
 
 
 def _target(adapt, energy):
