@@ -22,7 +22,12 @@ the innermost phase active during it.  Reported per phase: the peak RSS
 while in it (GB) and in bytes per vertex of the mesh; the overall peak and
 the RSS of the retained objects (mesh, scene, result) at the end.
 
-    python -m bench.memory [--quick] [--sizes 1024 2048]
+The inexact step frees its matrices and hierarchies during the flux
+reconstructions only under memory pressure (``fastmem.adaptive.SPILL =
+"auto"``); ``--spill on`` / ``off`` forces it, to measure what it saves on sizes
+that fit without it.
+
+    python -m bench.memory [--quick] [--sizes 1024 2048] [--spill auto|on|off]
 """
 
 from __future__ import annotations
@@ -135,9 +140,15 @@ def _install(tracker):
     return wrapped + 1
 
 
-def worker(n: int) -> dict:
+SPILL_MODES = {"auto": "auto", "on": True, "off": False}
+
+
+def worker(n: int, spill: str = "auto") -> dict:
     import fastmem as fm
+    import fastmem.adaptive
     from fastmem.options import estimate_memory
+
+    fastmem.adaptive.SPILL = SPILL_MODES[spill]
 
     fm.warm_up("inexact")  # kernels compiled or loaded before anything is measured
     gc.collect()
@@ -161,6 +172,8 @@ def worker(n: int) -> dict:
     peaks = {p: tracker.peak.get(p, 0) for p in (*PHASES, "other")}
     return {
         "n": n,
+        "spill": spill,
+        "spilled": [lv.get("spill") for lv in result.parameters["solver"]["levels"]],
         "n_vertices": nv,
         "n_triangles": mesh.n_triangles,
         "seconds": seconds,
@@ -178,15 +191,21 @@ def worker(n: int) -> dict:
 def main(argv=None):
     p = parser(__doc__)
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument(
+        "--spill",
+        choices=sorted(SPILL_MODES),
+        default="auto",
+        help="spilling of the inexact step: auto (under memory pressure, default), on, off",
+    )
     args = parse(p, argv)
     if args.worker is not None:
-        emit_worker_result(worker(args.worker))
+        emit_worker_result(worker(args.worker, args.spill))
         return 0
     sizes = args.sizes or (QUICK_SIZES if args.quick else FULL_SIZES)
     rows = []
     for n in sizes:
         progress(f"memory: n = {n}")
-        row = run_worker("bench.memory", ["--worker", str(n)])
+        row = run_worker("bench.memory", ["--worker", str(n), "--spill", args.spill])
         rows.append(row)
         gb = {k: f"{v / 1e9:.2f}" for k, v in row["peak_bytes"].items()}
         progress(f"  N = {row['n_vertices']}: peak {row['overall_peak_bytes'] / 1e9:.2f} GB; {gb}")
@@ -198,6 +217,7 @@ def main(argv=None):
             "scene": {"mu": [1.0, 1.0], "f": [-1.0, 1.0], "g": 0.1},
             "method": "inexact",
             "estimate": True,
+            "spill": args.spill,
         },
         "phases": list(PHASES),
         "rows": rows,

@@ -44,12 +44,22 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 
 from .estimators import _mass_matrix, friedrichs_constant
 from .history import ADAPTIVE_HISTORY_COLUMNS
+from .options import estimate_memory, memory_limit
 from .steps import EXACT_AMG_RTOL, AMGStep, StepReport, release_warm
 
-__all__ = ["ADAPTIVE_HISTORY_COLUMNS", "MAX_SKIP", "SKIP_MARGIN", "AdaptiveStep"]
+__all__ = [
+    "ADAPTIVE_HISTORY_COLUMNS",
+    "MAX_SKIP",
+    "SKIP_MARGIN",
+    "SPILL",
+    "SPILL_FRACTION",
+    "AdaptiveStep",
+    "memory_pressure",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +68,61 @@ logger = logging.getLogger(__name__)
 SKIP_MARGIN = 1.5
 #: ... but never for more than MAX_SKIP - 1 consecutive CG iterations.
 MAX_SKIP = 4
+
+#: Whether the inexact step spills (:meth:`AdaptiveStep.spill`): ``"auto"`` under memory
+#: pressure (:func:`memory_pressure`), ``True`` always, ``False`` never.  Results are the
+#: same bit for bit either way; spilling lowers the peak of the flux reconstructions and
+#: costs a rebuild (assembly, products, AMG setups) after every check that does not end
+#: the level (about 6-7 % of the general path's time at n = 512).
+SPILL = "auto"
+
+#: ``"auto"`` spills when the memory guard's estimate of the solve on the step's mesh
+#: (:func:`fastmem.options.estimate_memory`) exceeds this fraction of the memory at hand.
+SPILL_FRACTION = 0.5
+
+
+def _meminfo_bytes(key):
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _rss_bytes():
+    try:
+        with open("/proc/self/statm", encoding="ascii") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return 0
+
+
+def memory_pressure(mesh, fraction=None) -> bool:
+    """Return True when a solve on ``mesh`` may come close to the memory the process can use.
+
+    The memory guard's estimate of the peak (method ``"inexact"`` with the bound)
+    against ``fraction`` (default :data:`SPILL_FRACTION`) of the smaller of the
+    guard's limit (:func:`fastmem.options.memory_limit`: ``FASTMEM_MEMORY_LIMIT`` or
+    the machine's memory) and what the process could still reach (its resident
+    memory plus the system's ``MemAvailable``; Linux only, ignored elsewhere).
+    """
+    fraction = SPILL_FRACTION if fraction is None else fraction
+    need = estimate_memory(mesh.n_vertices, mesh.n_triangles, "inexact", True)
+    room = [memory_limit()[0]]
+    avail = _meminfo_bytes("MemAvailable")
+    if avail is not None:
+        room.append(avail + _rss_bytes())
+    room = [r for r in room if r]
+    return bool(room) and need > fraction * min(room)
+
+
+def _wants_spill(mesh) -> bool:
+    if SPILL == "auto":
+        return memory_pressure(mesh)
+    return bool(SPILL)
 
 
 class AdaptiveStep(AMGStep):
@@ -75,22 +140,30 @@ class AdaptiveStep(AMGStep):
         if self.decoupled:  # the share of s in eta_alg steers its CG
             self.mass = _mass_matrix(system.scene)
             self.c_f = friedrichs_constant(system.scene.mesh)
+        self.spilling = _wants_spill(system.scene.mesh)
+        self.stats["spill"] = self.spilling
 
     def spill(self):
-        """Before a flux reconstruction: free the matrices it does not need.
+        """Before a flux reconstruction: free what it does not need (when :data:`SPILL` says so).
 
-        The system matrices of the CG (:meth:`fastmem.steps.DecoupledCG.spill`,
-        :meth:`fastmem.steps.GeneralCG.spill`) and the consistent mass matrix
-        (56 bytes per vertex, cached on the scene by :mod:`fastmem.estimators`,
-        assembled again there on its next use).  Called by
+        The CG's matrices, AMG hierarchies and recomputable vectors
+        (:meth:`fastmem.steps.DecoupledCG.spill`, :meth:`fastmem.steps.GeneralCG.spill`),
+        the consistent mass matrix (56 bytes per vertex) and the stiffness matrices
+        (``A``, ``mu_i A``: 60-90 bytes per vertex each) cached on the scene, which the
+        scene assembles again on their next use.  Called by
         :class:`fastmem.newton.Checks` right before it reconstructs the flux;
-        :meth:`restore` rebuilds all of it bit for bit when the level goes on, so
-        only the memory peak changes, not a result.
+        :meth:`restore` rebuilds all of it bit for bit when the level goes on, so only
+        the memory peak and the time change, not a result.  Without memory pressure
+        (:data:`SPILL` ``"auto"``, :func:`memory_pressure`) nothing is freed.
         """
+        if not self.spilling:
+            return
         self.cg.spill()
         if self.decoupled:
             self.mass = None
-        self.cg.system.scene._cache.pop("M", None)
+        cache = self.cg.system.scene._cache
+        for key in ("M", "A", "A1", "A2"):
+            cache.pop(key, None)
 
     def restore(self):
         """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""

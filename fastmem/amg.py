@@ -203,8 +203,10 @@ class PCG:
     ``r.z`` of a (re)start are computed by the first :meth:`step` after it,
     from the same ``r`` (so bit for bit as if computed at once): a CG that is
     set up but never advanced applies no preconditioner and holds two
-    vectors fewer.  :meth:`release` drops them (and the preconditioner) for
-    good once the caller is done iterating.
+    vectors fewer.  ``z`` lives only inside :meth:`step` (between iterations
+    the CG holds ``x``, ``r``, ``p`` and ``b``: one vector less under the
+    estimators of a check).  :meth:`release` drops them (and the
+    preconditioner) for good once the caller is done iterating.
 
     Parameters
     ----------
@@ -318,9 +320,8 @@ class PCG:
         if self.stuck:
             return False
         if self.rz is None:  # first step after a (re)start
-            self.z = self.m(self.r)
-            self.p = self.z.copy()
-            self.rz = float(self.r @ self.z)
+            self.p = self.m(self.r)  # z of the restart: only p keeps it (updated in place)
+            self.rz = float(self.r @ self.p)
         if self.rz <= 0.0 or not np.isfinite(self.rz):
             return self._breakdown()
         ap = self.a @ self.p
@@ -336,6 +337,7 @@ class PCG:
         self.rz = rz_new
         self.p *= beta
         self.p += self.z
+        self.z = None  # recomputed from r by the next step: not kept between iterations
         self.iterations += 1
         self._fresh = False
         return True

@@ -249,7 +249,10 @@ def solve(
         t0 = time.perf_counter()
         if options.newton.needs_estimate:  # one evaluation of callable loads for all uses
             expect_estimates(scene)
+        # assembled (and cached on the scene) here, but not held by this frame: the
+        # inexact step may free them during a flux reconstruction (AdaptiveStep.spill)
         _ = scene.loads, scene.weighted_stiffness(1), scene.weighted_stiffness(2)
+        del _
         timings["assembly"] = time.perf_counter() - t0
         if adapt is None:
             result = solve_levels(scene, options, init, timings)

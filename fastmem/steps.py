@@ -80,6 +80,14 @@ def new_stats() -> dict:
     return {"amg_setups": 0, "amg_setup_seconds": 0.0, "checks": 0, "skipped_checks": 0}
 
 
+def _resetup(matrix, options, stats):
+    """Rebuild a hierarchy freed by a spill (booked apart: ``spill_setups``, not ``amg_setups``)."""
+    pre = amg_preconditioner(matrix, dict(options.amg_options))
+    stats["spill_setups"] = stats.get("spill_setups", 0) + 1
+    stats["spill_setup_seconds"] = stats.get("spill_setup_seconds", 0.0) + pre.setup_seconds
+    return pre
+
+
 class GeneralCG:
     """CG on the reduced SPD system of one active set (general path, docs/method.md §3.2)."""
 
@@ -110,25 +118,35 @@ class GeneralCG:
         return 1 if self.cg.step() else 0
 
     def spill(self):
-        """Free ``K_II`` and the reduced matrix while the flux is reconstructed.
+        """Free what the flux reconstruction does not need: matrices, hierarchy, prolongation.
 
-        About 260 bytes per vertex that the flux does not need, rebuilt bit for bit by
-        :meth:`restore` when the iteration goes on (see :meth:`DecoupledCG.spill`).
+        ``K_II``, ``A1_II`` (about 340 bytes per vertex together), and of the current
+        step the reduced matrix, its AMG hierarchy, the prolongation ``P`` and the CG's
+        right-hand side; :meth:`restore` rebuilds all of it bit for bit (the assembly,
+        the products and the smoothed-aggregation setup are deterministic) when the
+        iteration goes on (see :meth:`DecoupledCG.spill`).
         """
-        if self.system.k_ii is None:
+        st = self.system
+        if st.k_ii is None:
             return
-        self.system.k_ii = None
+        st.k_ii = st.a1_ii = None
         if self.active is not None:
-            self.mat = self.cg.a = None
+            self.mat = self.pre = self.p = None
+            self.cg.a = self.cg.b = self.cg.m = None
 
     def restore(self):
         """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
         st = self.system
         if st.k_ii is not None:
             return
+        ii = st.interior
+        st.a1_ii = st.scene.weighted_stiffness(1)[ii][:, ii].tocsr()  # as GeneralStep makes it
         st.k_ii = st.reduced_stiffness()
         if self.active is not None:
-            self.mat = self.cg.a = (self.p.T @ st.k_ii @ self.p).tocsr()
+            p = self.p = st.prolongation(self.active)
+            self.mat = self.cg.a = (p.T @ st.k_ii @ p).tocsr()
+            self.cg.b = p.T @ np.concatenate([st.rhs1, st.rhs2])
+            self.pre = self.cg.m = _resetup(self.mat, self.options, self.stats)
 
     def solve_exact(self):
         """Iterate to round-off; return the CG iterations done (all CGs)."""
@@ -244,22 +262,28 @@ class DecoupledCG:
         self.cg_w = PCG(mat, rhs, w0, self._masked)
 
     def spill(self):
-        """Free the interior Laplacian and the gap matrix while the flux is reconstructed.
+        """Free the interior Laplacian, the gap matrix and the hierarchies during a flux.
 
-        The flux needs only the mesh, the data and the triple; these two matrices (about
-        130 bytes per vertex) are rebuilt bit for bit by :meth:`restore`, which the
-        inexact step calls when the iteration goes on after the check
+        The flux needs only the mesh, the data and the triple.  Freed: the interior
+        Laplacian and its diagonal, the gap matrix and the gap CG's right-hand side
+        (about 150 bytes per vertex), and the AMG hierarchies (about 75); all
+        rebuilt bit for bit by :meth:`restore` (the matrices are assembled again, the
+        smoothed-aggregation setup is deterministic), which the inexact step calls
+        when the iteration goes on after the check
         (:class:`fastmem.adaptive.AdaptiveStep`).  On the accepted (last) check of a
-        level they are never rebuilt.  The AMG hierarchies are kept (a rebuild costs a
-        setup).
+        level nothing is rebuilt.
         """
         if self.a_ii is None:
             return
-        self.a_ii = self.system.a_ii = self.pre_all.matrix = None
+        self.a_ii = self.system.a_ii = self.pre_all.matrix = self.diag = None
         if self.cg_s is not None:
             self.cg_s.a = None
         if self.cg_w is not None:
-            self.cg_w.a = None
+            self.cg_w.a = self.cg_w.b = None
+        self._rebuild = (self.pre_all.built, self.pre_w is not self.pre_all)
+        self.pre_all.release()
+        if self._rebuild[1]:
+            self.pre_w = None
 
     def restore(self):
         """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
@@ -267,10 +291,20 @@ class DecoupledCG:
             return
         a = self.system.a_ii = self.system.interior_laplacian()
         self.a_ii = self.pre_all.matrix = a
+        self.diag = a.diagonal()
         if self.cg_s is not None:
             self.cg_s.a = a
         if self.cg_w is not None:
             self.cg_w.a = gap_matrix(a, self.active)
+            self.cg_w.b = np.where(self.active, 0.0, self.system.rhs_w)
+        rebuild_all, rebuild_w = self._rebuild
+        if rebuild_all:
+            self.pre_all.pre = _resetup(a, self.options, self.stats)
+        if rebuild_w:
+            # the hierarchy of the setup's active set (often the current one: its matrix)
+            same = self.cg_w is not None and np.array_equal(self.setup_active, self.active)
+            mat = self.cg_w.a if same else gap_matrix(a, self.setup_active)
+            self.pre_w = _resetup(mat, self.options, self.stats)
 
     def _s_finished(self):
         """Mark s done (at round-off): free its search vectors and, if unused, its hierarchy."""
