@@ -1,20 +1,36 @@
 """Compile (or load from Numba's cache) the kernels a solve needs, before the solve.
 
 The first run of fastmem after an install compiles its Numba kernels (about
-20 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
+10 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
 in a fraction of a second.  :func:`warm_up` does that work on a tiny problem of
 the same kind, so that a caller (the ``fastmem run`` command, a benchmark) can
 say what is happening and time the solve apart from the compilation.
+
+Compiling is single-threaded Python work in Numba, and the flux patch kernel
+is half of it.  With an empty cache and a second core, :func:`warm_up`
+therefore compiles that kernel in a helper process (it lands in Numba's
+on-disk cache) while it compiles everything else itself, starting with the
+patch kernel's two largest callees, which the helper then loads from the cache
+(if it gets there first, both compile them: slower, same result).
+``fastmem run`` starts the helper before it builds its mesh.  The tiny
+solve waits for the helper only when it reaches the flux reconstruction, then
+loads the kernel from the cache.  ``FASTMEM_COMPILE_HELPER=0`` turns the helper off; if
+it fails, the kernel is compiled in the calling process as without it.
 """
 
 from __future__ import annotations
 
 import importlib
 import logging
+import os
 import pkgutil
+import subprocess
+import sys
 import time
 import warnings
 from dataclasses import dataclass
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["WarmUp", "kernels_cached", "warm_up"]
 
@@ -37,9 +53,12 @@ class WarmUp:
     seconds: float
     compiled: int
     loaded: int
+    helper: bool = False
 
     def __str__(self) -> str:
         what = f"compiled {self.compiled}" if self.compiled else "none compiled"
+        if self.helper:
+            what += " here, the flux kernel in a helper process"
         return f"{self.seconds:.2f} s ({what}, {self.loaded} loaded from cache)"
 
 
@@ -76,16 +95,116 @@ def kernels_cached() -> bool | None:
     whose source changed since is still recompiled: this is a hint for
     progress messages, not a promise.
     """
-    import os
-
     try:
-        return all(
-            os.path.exists(d._cache._cache_file._index_path)
-            for d in _dispatchers()
-            if d._can_compile
-        )
+        return all(_cached(d) for d in _dispatchers() if d._can_compile)
     except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
         return None
+
+
+def _cached(dispatcher) -> bool:
+    return os.path.exists(dispatcher._cache._cache_file._index_path)
+
+
+def pipeline_kernels_cached() -> bool | None:
+    """Whether the largest kernels of a default solve are in Numba's cache (a hint).
+
+    Unlike :func:`kernels_cached` this ignores kernels a default solve does not
+    use (mesh refinement, nested dissection), so that it turns True after the
+    first ``fastmem run``.
+    """
+    from .kernels import assembly, flux, topology
+
+    try:
+        kernels = (flux._reconstruct_chunk, assembly._stiffness_csr_range, topology.edge_topology)
+        return all(_cached(d) for d in kernels)
+    except Exception:  # noqa: BLE001 - private Numba layout
+        return None
+
+
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+#: Python code the helper process runs (a module run with -m would be imported twice)
+#: (the coefficient pass first: meanwhile the caller compiles the two largest
+#: callees of the patch kernel, which the helper then finds in the cache)
+_HELPER_CODE = (
+    "from fastmem.kernels import flux; flux.precompile('coefficients'); flux.precompile('patches')"
+)
+
+
+_helper = None
+
+
+def start_compile_helper() -> bool:
+    """Start compiling the flux patch kernel in a helper process, if that will help.
+
+    Only with an empty cache for that kernel, two or more usable CPUs and
+    ``FASTMEM_COMPILE_HELPER`` not set to 0.  :func:`warm_up` calls it; a caller
+    that has other work to do first (``fastmem run`` builds its mesh) calls it
+    earlier so that the helper starts sooner.  Returns whether a helper runs.
+    """
+    global _helper
+    if _helper is not None and _helper.poll() is None:
+        return True
+    _helper = None
+    if os.environ.get("FASTMEM_COMPILE_HELPER", "1").strip().lower() in ("0", "no", "false", "off"):
+        return False
+    from .kernels import flux
+
+    try:
+        if _cpus() < 2 or _cached(flux._reconstruct_chunk):
+            return False
+        _helper = subprocess.Popen(
+            [sys.executable, "-c", _HELPER_CODE],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+    except Exception as err:  # noqa: BLE001 - no helper: compile here, as without it
+        logger.debug("no compile helper process: %s", err)
+        return False
+    # the patch kernel's two largest callees, here, while the helper imports
+    # fastmem and compiles the coefficient pass: it then loads them from the cache
+    flux.precompile("solvers")
+    return True
+
+
+def _take_helper():
+    global _helper
+    proc, _helper = _helper, None
+    return proc
+
+
+#: seconds the tiny solve waits for the helper before compiling the kernel itself
+HELPER_TIMEOUT = 300.0
+
+
+def _join_helper(proc) -> bool:
+    """Wait for the helper; True when it finished cleanly (its kernel is in the cache)."""
+    try:
+        _, err = proc.communicate(timeout=HELPER_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        logger.debug("compile helper killed after %.0f s", HELPER_TIMEOUT)
+        return False
+    if proc.returncode != 0:
+        tail = err.decode(errors="replace").strip().splitlines()[-3:]
+        logger.debug("compile helper failed (exit %s): %s", proc.returncode, " | ".join(tail))
+        return False
+    return True
+
+
+def _precompile_locate() -> None:
+    from .coarsen import locate
+    from .mesh import Mesh
+
+    coarse = Mesh.square(2)
+    locate(coarse, coarse.vertices)
 
 
 def warm_up(
@@ -134,9 +253,19 @@ def warm_up(
         from .errors import ParameterError
 
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    from .kernels import flux as _kflux
+
     dispatchers = _dispatchers()
     hits0, misses0 = _counts(dispatchers)
     t0 = time.perf_counter()
+    uses_flux = method == "inexact" or estimate or adaptive
+    helper = _take_helper() if uses_flux and start_compile_helper() else None
+    if helper is not None:
+        _kflux.compile_gate = lambda: _join_helper(helper)
+        # meanwhile: the flux kernels the helper does not compile and the point
+        # location of the nested iteration (otherwise compiled after the wait)
+        _kflux.precompile("estimators")
+        _precompile_locate()
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:
@@ -164,6 +293,15 @@ def warm_up(
             solve(scene, method=method, estimate=estimate or adaptive, **keywords)
     finally:
         log.setLevel(level)
+        if helper is not None:
+            _kflux.compile_gate = None
+            if helper.poll() is None:  # the solve never reached the flux kernel
+                _join_helper(helper)
     seconds = time.perf_counter() - t0
     hits1, misses1 = _counts(dispatchers)
-    return WarmUp(seconds=seconds, compiled=misses1 - misses0, loaded=hits1 - hits0)
+    return WarmUp(
+        seconds=seconds,
+        compiled=misses1 - misses0,
+        loaded=hits1 - hits0,
+        helper=helper is not None,
+    )

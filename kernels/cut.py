@@ -34,8 +34,9 @@ only the ratios ``w_p / (w_p - w_n)`` enter the geometry, so scaling ``w`` by
 a power of two leaves :func:`positive_area` bitwise unchanged.
 
 Threading: every kernel runs over the triangles in chunks (serial Numba
-loops in Python threads, :mod:`._par`); iteration ``t`` writes ``out[t]`` only, into an array allocated before the loop.  The result is
-bitwise independent of the thread count.  Inputs are not modified.
+loops in Python threads, :mod:`._par`); iteration ``t`` writes ``out[t]``
+only, into an array allocated before the loop.  The result is bitwise
+independent of the thread count.  Inputs are not modified.
 """
 
 import numpy as np

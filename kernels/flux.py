@@ -720,6 +720,100 @@ PATCH_GRAIN = 256
 TRIANGLE_GRAIN = 4096
 
 
+#: Called, when set, before the patch kernel first runs (then cleared by its
+#: owner): :func:`fastmem.warm_up` sets it to wait for a helper process that is
+#: compiling the patch kernel into Numba's cache at the same time.
+compile_gate = None
+
+
+def _readonly(a):
+    a.setflags(write=False)
+    return a
+
+
+def _writable(a):
+    """Return ``a``, or a copy when it is read-only.
+
+    Numba compiles one specialisation per read-only flag, and the solver's own
+    vectors are writable (the solution arrays of a Result are not; without this,
+    a reconstruction from them would compile the kernel anew).
+    """
+    return a if a.flags.writeable else a.copy()
+
+
+def precompile(part: str) -> None:
+    """Compile (or load from Numba's cache) one group of this module's kernels.
+
+    ``part``: ``"patches"`` (the patch kernel and its callees, the bulk of the
+    compile time), ``"solvers"`` (the patch kernel's two largest callees),
+    ``"coefficients"`` or ``"estimators"``.  The kernels are
+    called on empty ranges with arrays of exactly the types
+    :func:`fastmem.flux.reconstruct` and :func:`fastmem.bound.flux_terms` pass
+    (read-only mesh arrays, 32-bit topology), so the code compiled here is the
+    code a solve uses (tests/test_coldstart.py checks that no second
+    specialisation appears).  Nothing is computed.
+    """
+    f8 = np.float64
+    vertices = _readonly(np.zeros((3, 2)))
+    triangles = _readonly(np.array([[0, 1, 2]], dtype=np.int64))
+    diameters = _readonly(np.ones(1))
+    coef = np.zeros((2, 1, 8))
+    if part == "patches":
+        _reconstruct_chunk(
+            np.zeros(1, dtype=np.int64),
+            0,
+            0,
+            vertices,
+            triangles,
+            diameters,
+            _readonly(np.zeros((1, 3), dtype=np.int32)),
+            _readonly(np.zeros((3, 2), dtype=np.int32)),
+            _readonly(np.zeros(3, dtype=np.bool_)),
+            _readonly(np.zeros(4, dtype=np.int64)),
+            _readonly(np.zeros(3, dtype=np.int32)),
+            _readonly(np.zeros(3, dtype=np.int8)),
+            *(np.zeros(3, dtype=f8) for _ in range(5)),
+            np.ones(1),
+            np.ones(1),
+            0.0,
+            0.0,
+            np.zeros((1, 3, 3)),
+            np.zeros((1, 3, 3)),
+            np.zeros(1, dtype=np.bool_),
+            np.zeros(1),
+            1,
+            coef,
+        )
+    elif part == "solvers":
+        a = np.zeros((0, 3))
+        cstart = np.zeros(0, dtype=np.int64)
+        _refine_balance(a, a, a, a, a, cstart, 0, 0, a, np.zeros((0, 6), dtype=np.int64), a, 0)
+        _reduced_solve(a, a, a, a, a, cstart, 0, 0, False, 0, 1)  # nothing to solve
+    elif part == "coefficients":
+        _coefficients_chunk(vertices, triangles, diameters, coef, 0, 0)
+    elif part == "estimators":
+        rule = _readonly(np.zeros((1, 3))), _readonly(np.zeros(1))
+        u = np.zeros(3)
+        _estimators_chunk(
+            vertices,
+            triangles,
+            diameters,
+            coef,
+            u,
+            u,
+            np.ones(1),
+            np.ones(1),
+            *rule,
+            np.zeros((2, 1)),
+            0,
+            0,
+        )
+    else:
+        raise ValueError(
+            f"part must be 'patches', 'solvers', 'coefficients' or 'estimators', got {part!r}"
+        )
+
+
 def reconstruct_colored(
     order,
     color_ptr,
@@ -789,6 +883,13 @@ def reconstruct_colored(
     the sigma^a); one final pass over the triangles turns them into canonical
     coefficients.
     """
+    global compile_gate
+    if compile_gate is not None:
+        gate, compile_gate = compile_gate, None
+        gate()
+    u1, u2, lam, rho1, rho2, mu1, mu2, load1, load2, redist, gamma = (
+        _writable(a) for a in (u1, u2, lam, rho1, rho2, mu1, mu2, load1, load2, redist, gamma)
+    )
     m = triangles.shape[0]
     out = np.zeros((2, m, 8))
     threads = max(1, int(n_threads))
@@ -886,6 +987,7 @@ def flux_estimators(vertices, triangles, diameters, coef, u1, u2, mu1, mu2, bary
     """
     m = triangles.shape[0]
     out = np.empty((2, m))
+    coef, u1, u2, mu1, mu2 = (_writable(a) for a in (coef, u1, u2, mu1, mu2))
 
     def rows(t0, t1):
         _estimators_chunk(
