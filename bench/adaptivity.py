@@ -56,7 +56,9 @@ Poisson units: ``bench._common.poisson_unit`` on the same mesh, same run.
 adaptive loop on the L-shape with ``--big-tol`` (unreachably small) and
 ``--big-max-vertices`` (default 6M), recording the triangles reached, the
 peak resident memory and the time; ``--big-only`` runs only that stage and
-merges it into the existing result file.
+merges it into the existing result file.  ``--merge`` (with ``--cases``)
+likewise replaces only the cases measured now and records, per case, the
+run that measured it (``cases_measured``).
 
     python -m bench.adaptivity [--quick] [--uniform-max 2048] [--big | --big-only]
 
@@ -701,6 +703,43 @@ def big_stage(a):
     return out
 
 
+# ------------------------------------------------------------------ merging a stage
+
+
+def _merged(payload, a):
+    """The existing result file with the cases of ``payload`` (measured now) replaced.
+
+    Each case records the run that measured it (``cases_measured``: date, parameters,
+    warm-up of that run); the other cases and the big stage are kept as they were.
+    """
+    from bench.report import load
+
+    old = load("adaptivity", a.quick)
+    if old is None:
+        return payload
+    stamp = {
+        "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "parameters": payload["parameters"],
+        "warmup": payload["warmup"],
+        "seconds_total_main": payload["seconds_total_main"],
+    }
+    measured = old.get("cases_measured") or {
+        name: {"parameters": old.get("parameters"), "note": "full run before --merge existed"}
+        for name in old.get("cases", {})
+    }
+    for name, case in payload["cases"].items():
+        old.setdefault("cases", {})[name] = case
+        measured[name] = stamp
+    old["cases_measured"] = measured
+    new_rows = {r["case"] for r in payload["rows"]}
+    old["rows"] = [r for r in old.get("rows", []) if r["case"] not in new_rows] + payload["rows"]
+    if "big" in payload:
+        old["big"] = payload["big"]
+    for key in ("benchmark", "quick", "machine"):
+        old.pop(key, None)
+    return old
+
+
 # ------------------------------------------------------------------ main
 
 
@@ -724,6 +763,11 @@ def main(argv=None):
     p.add_argument("--big-max-vertices", type=int, default=6_000_000)
     p.add_argument("--big-time-budget", type=float, default=None)
     p.add_argument("--big-worker", action="store_true", help="(internal) the big stage itself")
+    p.add_argument(
+        "--merge",
+        action="store_true",
+        help="replace only the --cases measured now in the existing result file",
+    )
     a = parse(p, argv)
     if a.big_worker:
         big_worker(a)
@@ -791,6 +835,8 @@ def main(argv=None):
     payload["peak_rss_mb"] = peak_rss_mb()
     if a.big:
         payload["big"] = big_stage(a)
+    if a.merge:
+        payload = _merged(payload, a)
     payload["targets"] = targets(payload["cases"], payload.get("big"))
     _print_targets(payload["targets"])
     finish("adaptivity", payload, a.quick)
