@@ -9,7 +9,8 @@ size alone.  Phases, each timed on its own:
 * ``solve``: ``fm.solve(scene, method=...)`` on a fresh scene (assembly
   included; ``inexact`` evaluates the estimators inside its stopping test);
 * ``estimate``: ``fm.estimate`` of the returned triple (the stand-alone
-  guaranteed bound: flux reconstruction and all estimators);
+  guaranteed bound: flux reconstruction and all estimators; the bound the
+  solve attached is dropped first, as a user replacing it would);
 * ``archive``: ``result.save`` to an HDF5 file in a temporary folder
   (atomic write, compressed chunks).
 
@@ -17,9 +18,16 @@ Each phase is repeated (fresh objects every time) up to ``--repeat`` times,
 fewer when one pipeline takes longer than ``--budget`` seconds; the JIT caches
 are loaded by a pipeline on a tiny mesh first.  The growth exponent p of
 each phase, time ~ N^p in the number of vertices N, is fitted by least
-squares on log-log over the sizes with N >= 1e4 (all sizes with --quick).
+squares on log-log over the sizes with N >= 1e4 (all sizes with --quick), and
+so is the peak resident memory (``VmHWM`` of the size's worker).
+
+``--merge`` keeps the rows of the other sizes already in the result file (same
+method) and fits the exponents over all of them: a size too big to share an
+exclusive run with the others (n = 4096: about 5 minutes and 20 GB) is
+measured on its own.
 
     python -m bench.scaling [--quick] [--sizes 64 128 256 512 1024 2048] [--method inexact]
+    python -m bench.scaling --sizes 4096 --repeat 1 --merge
 """
 
 import argparse
@@ -61,6 +69,8 @@ def pipeline(n, method, folder):
     result = fm.solve(scene, method=method)
     t["solve"] = time.perf_counter() - t0
 
+    eta_solve = None if result.estimate is None else result.eta
+    result.estimate = None  # its maps (about 100 bytes per vertex) are replaced below
     t0 = time.perf_counter()
     est = fm.estimate(scene, result.u1, result.u2, result.lam)
     t["estimate"] = time.perf_counter() - t0
@@ -79,8 +89,8 @@ def pipeline(n, method, folder):
         "solve_timings": result.timings,
         "archive_mb": path.stat().st_size / 2**20,
     }
-    if result.estimate is not None and method == "inexact":
-        info["eta_inside_solve"] = result.eta
+    if eta_solve is not None and method == "inexact":
+        info["eta_inside_solve"] = eta_solve
     back = fm.load(path)  # round trip, not timed
     info["archive_roundtrip_max_diff"] = float(
         max(abs(back.u1 - result.u1).max(), abs(back.lam - result.lam).max())
@@ -139,11 +149,31 @@ def exponents(rows, min_vertices):
     return out
 
 
+def _kept_rows(args, sizes):
+    """Rows of the other sizes in the existing result file (``--merge``), same method."""
+    import json
+
+    from bench._common import result_name, results_dir
+
+    path = results_dir() / f"{result_name('scaling', args.quick)}.json"
+    if not path.exists():
+        return []
+    old = json.loads(path.read_text())
+    if old.get("parameters", {}).get("method") != args.method:
+        raise SystemExit(f"--merge: {path} holds method {old['parameters'].get('method')!r}")
+    return [r for r in old.get("rows", []) if r["n"] not in sizes]
+
+
 def main(argv=None):
     p = parser(__doc__)
     p.add_argument("--method", default="inexact", choices=("inexact", "exact-amg", "exact"))
     p.add_argument("--budget", type=float, default=60.0, help="stop repeating after this")
     p.add_argument("--in-process", action="store_true", help="no subprocess per size")
+    p.add_argument(
+        "--merge",
+        action="store_true",
+        help="keep the other sizes' rows of the existing result file (same method)",
+    )
     p.add_argument("--worker", type=int, default=None, help=argparse.SUPPRESS)
     args = parse(p, argv)
     if args.worker is not None:
@@ -169,9 +199,14 @@ def main(argv=None):
             + " ".join(f"{k} {ph[k]['median']:.3f}s" for k in PHASES)
             + f" peak {row['peak_rss_mb']:.0f} MB ({row['repetitions']} reps)"
         )
+    kept = _kept_rows(args, sizes) if args.merge else []
+    rows = sorted(kept + rows, key=lambda r: r["n"])
     payload = {
         "parameters": {
-            "sizes": sizes,
+            "sizes": [r["n"] for r in rows],
+            "merged": (
+                {"kept": [r["n"] for r in kept], "measured_now": sizes} if args.merge else None
+            ),
             "method": args.method,
             "repeat": args.repeat,
             "budget_s": args.budget,
