@@ -7,7 +7,11 @@ an empty cache folder (``NUMBA_CACHE_DIR``) and measures, each in a fresh
 process:
 
 * ``cold``: ``fastmem run --no-save`` (the README's first command without the
-  install) with the empty cache: wall time of the whole process;
+  install) with the empty cache: wall time of the whole process (the flux
+  kernel compiles in a helper process meanwhile, :mod:`fastmem.warmup`);
+* ``cold_no_helper``: the same with ``FASTMEM_COMPILE_HELPER=0`` and another
+  empty cache (everything compiles in the one process: the baseline of the
+  helper, measured in the same run);
 * ``warm``: the same command again, with the cache the first one filled;
 * ``import``: ``python -c "import fastmem"`` (the floor of any run);
 * per kernel: the compile time of every kernel specialisation compiled by the
@@ -88,19 +92,36 @@ def main(argv=None):
         return 0
     repeat = 1 if args.quick else args.repeat
     command = QUICK_COMMAND if args.quick else COMMAND
-    cold, warm, imports, outputs, rows = [], [], [], [], []
+    cold, cold_alone, warm, imports, outputs, rows = [], [], [], [], [], []
     for k in range(repeat):
         with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
             env = dict(os.environ) if args.quick else {**os.environ, "NUMBA_CACHE_DIR": cache}
             t_cold, out = _timed(command, env)
             t_warm, _ = _timed(command, env)
             t_import, _ = _timed(["-c", "import fastmem"], env)
-        rows.append({"repetition": k, "cold_s": t_cold, "warm_s": t_warm, "import_s": t_import})
+        with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
+            env = {**os.environ, "FASTMEM_COMPILE_HELPER": "0"}
+            if not args.quick:
+                env["NUMBA_CACHE_DIR"] = cache
+            t_alone, _ = _timed(command, env)
+        rows.append(
+            {
+                "repetition": k,
+                "cold_s": t_cold,
+                "cold_no_helper_s": t_alone,
+                "warm_s": t_warm,
+                "import_s": t_import,
+            }
+        )
         cold.append(t_cold)
+        cold_alone.append(t_alone)
         warm.append(t_warm)
         imports.append(t_import)
         outputs.append(out)
-        progress(f"coldstart {k + 1}/{repeat}: cold {t_cold:.1f} s, warm {t_warm:.2f} s")
+        progress(
+            f"coldstart {k + 1}/{repeat}: cold {t_cold:.1f} s "
+            f"(without the helper {t_alone:.1f} s), warm {t_warm:.2f} s"
+        )
     with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache}
         res = subprocess.run(
@@ -135,6 +156,7 @@ def main(argv=None):
         "warm_seconds": warm,
         "import_seconds": imports,
         "cold": summary(cold),
+        "cold_no_helper": summary(cold_alone),
         "warm": summary(warm),
         "import": summary(imports),
         "first_output": outputs[0],

@@ -378,6 +378,18 @@ def _adaptivity_table(cases):
     return "\n".join(lines)
 
 
+def _coldstart(d, v):
+    v["cold_s"] = f"{_med(d['cold']):.1f}"
+    v["warm_s"] = f"{_med(d['warm']):.1f}"
+    v["import_s"] = f"{_med(d['import']):.1f}"
+    if "cold_no_helper" in d:
+        v["cold_no_helper_s"] = f"{_med(d['cold_no_helper']):.1f}"
+    kernels = d.get("kernel_seconds_inclusive", {})
+    patch = kernels.get("fastmem.kernels.flux._reconstruct_chunk")
+    if patch is not None:
+        v["cold_patch_s"] = f"{patch:.1f}"
+
+
 _EXTRACT = {
     "unstructured": _unstructured,
     "assembly": _assembly,
@@ -390,6 +402,7 @@ _EXTRACT = {
     "threads": _threads,
     "direct_ordering": _direct_ordering,
     "adaptivity": _adaptivity,
+    "coldstart": _coldstart,
 }
 
 

@@ -307,289 +307,6 @@ def _gradients(i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, inv2a):
 
 
 @jit
-def _patch_solve(
-    a,
-    vertices,
-    triangles,
-    diameters,
-    tri_edges,
-    edge_tris,
-    boundary,
-    patch_ptr,
-    patch_triangles,
-    patch_local,
-    u1,
-    u2,
-    lam,
-    rho1,
-    rho2,
-    mu1,
-    mu2,
-    f1c,
-    f2c,
-    load1,
-    load2,
-    redist,
-    gamma,
-    out,
-    edge_ids,
-    emap,
-    cstart,
-    kmat,
-    beta,
-    mred,
-    fred,
-    cmat,
-    crhs,
-    smat,
-    mred2,
-    cmat2,
-    smat2,
-    crow,
-    corig,
-    mass,
-    div,
-    tau,
-    gloc,
-    kapj,
-):
-    """Solve the patch problem of vertex a; add its local dof values to ``out`` (2, M, 8).
-
-    Reduced formulation (module docstring): per triangle the bubbles are
-    eliminated through two of the three divergence equations, leaving an SPD
-    problem on the patch edge dofs with one flux-balance constraint per
-    triangle.  The remaining arguments are per-thread work arrays (sized for
-    the largest patch; no allocation and no array views per patch).
-
-    Weights (docs/method.md §4, per-triangle tensions): membrane i minimises
-    ``sum_K w_iK ||tau + v||_K^2`` with ``w_iK = mu_i,K0 / mu_i,K`` (K0 the
-    first patch triangle; a constant factor does not change the minimiser),
-    so M' and the right-hand side of triangle K are scaled by w_iK.  When
-    ``w_1K = w_2K`` on the whole patch (always for constant tensions, where
-    both are 1 and the arithmetic is the unweighted one) the membranes share
-    M', its factor and the Schur complement; otherwise membrane 2 gets its own
-    (``mred2``, ``cmat2``, ``smat2``).
-    """
-    pstart = patch_ptr[a]
-    nt = patch_ptr[a + 1] - pstart
-    interior = not boundary[a]
-    # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
-    shared = True
-    # contrast of the weights on the patch: beyond 1e3 one step of iterative
-    # refinement keeps the flux balance at round-off (_refine_balance)
-    refine = False
-    t0 = patch_triangles[pstart]
-    mu1_0 = mu1[0] if mu1.shape[0] == 1 else mu1[t0]
-    mu2_0 = mu2[0] if mu2.shape[0] == 1 else mu2[t0]
-    if mu1.shape[0] != 1 or mu2.shape[0] != 1:
-        lo1 = hi1 = lo2 = hi2 = 1.0
-        for p in range(nt):
-            t = patch_triangles[pstart + p]
-            w1 = mu1_0 / (mu1[0] if mu1.shape[0] == 1 else mu1[t])
-            w2 = mu2_0 / (mu2[0] if mu2.shape[0] == 1 else mu2[t])
-            lo1 = min(lo1, w1)
-            hi1 = max(hi1, w1)
-            lo2 = min(lo2, w2)
-            hi2 = max(hi2, w2)
-            if abs(w1 - w2) > 1e-13 * max(w1, w2):
-                shared = False
-        refine = hi1 > 1e3 * lo1 or hi2 > 1e3 * lo2
-    # --- patch edges with dofs
-    ne = 0
-    for p in range(nt):
-        t = patch_triangles[pstart + p]
-        i = patch_local[pstart + p]
-        for k in range(3):
-            e = tri_edges[t, k]
-            on_bnd = edge_tris[e, 1] < 0
-            if k == i and not (on_bnd and not interior):
-                emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
-                emap[p, 2 * k + 1] = -1
-                continue
-            s = -1
-            for q in range(ne):
-                if edge_ids[q] == e:
-                    s = q
-                    break
-            if s < 0:
-                edge_ids[ne] = e
-                s = ne
-                ne += 1
-            emap[p, 2 * k] = 2 * s
-            emap[p, 2 * k + 1] = 2 * s + 1
-    n_e = 2 * ne
-    for r in range(n_e):
-        fred[r, 0] = 0.0
-        fred[r, 1] = 0.0
-        for s in range(r + 1):
-            mred[r, s] = 0.0
-    if not shared:
-        for r in range(n_e):
-            for s in range(r + 1):
-                mred2[r, s] = 0.0
-    for p in range(nt):
-        for r in range(n_e):
-            cmat[p, r] = 0.0
-    r1a = 0.0 if not interior else rho1[a]
-    r2a = 0.0 if not interior else rho2[a]
-    lam_a = 0.0 if not interior else lam[a]
-    redist_a = interior and redist.shape[0] > 1 and redist[a]
-    gam = gamma[a] if redist_a else 0.0
-    # --- per triangle: local matrices, bubble elimination, scatter
-    for p in range(nt):
-        t = patch_triangles[pstart + p]
-        i = patch_local[pstart + p]
-        i0 = triangles[t, 0]
-        i1 = triangles[t, 1]
-        i2 = triangles[t, 2]
-        x0 = vertices[i0, 0]
-        y0 = vertices[i0, 1]
-        x1 = vertices[i1, 0]
-        y1 = vertices[i1, 1]
-        x2 = vertices[i2, 0]
-        y2 = vertices[i2, 1]
-        area = rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau)
-        du1x, du1y, du2x, du2y, gax, gay = _gradients(
-            i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, 0.5 / area
-        )
-        m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
-        m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
-        # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
-        w1 = mu1_0 / m1
-        w2 = w1 if shared else mu2_0 / m2
-        # data (g, lambda_j)
-        dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
-        dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
-        for j in range(3):
-            mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
-            if load1.shape[0] == 1:
-                l1 = f1c * mij
-            else:
-                l1 = load1[t, i, j]
-            if load2.shape[0] == 1:
-                l2 = f2c * mij
-            else:
-                l2 = load2[t, i, j]
-            gloc[j, 0] = l1 - dot1 - r1a * mij
-            gloc[j, 1] = l2 - dot2 - r2a * mij
-            # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
-            kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
-        if redist_a:
-            # redistributed contact load (fastmem.flux.contact_redistribution): the
-            # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
-            # negative vertex values cut to 0, plus gamma_a m_K psi_a
-            ssum = kapj[0] + kapj[1] + kapj[2]
-            scale = 12.0 / area
-            n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
-            n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
-            n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
-            nsum = n0 + n1 + n2
-            # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
-            gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
-            kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
-            kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
-            kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
-        for j in range(3):
-            gloc[j, 0] += kapj[j]
-            gloc[j, 1] -= kapj[j]
-        # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
-        b00 = div[1, 6]
-        b01 = div[1, 7]
-        b10 = div[2, 6]
-        b11 = div[2, 7]
-        idet = 1.0 / (b00 * b11 - b01 * b10)
-        c00 = b11 * idet
-        c01 = -b01 * idet
-        c10 = -b10 * idet
-        c11 = b00 * idet
-        for r in range(6):
-            kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
-            kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
-        for c in range(2):
-            beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
-            beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
-        # flux target -(tau, v) of the bubbles (tau = mu psi_a grad u)
-        tb10 = -m1 * (du1x * tau[i, 0, 6] + du1y * tau[i, 1, 6])
-        tb11 = -m1 * (du1x * tau[i, 0, 7] + du1y * tau[i, 1, 7])
-        tb20 = -m2 * (du2x * tau[i, 0, 6] + du2y * tau[i, 1, 6])
-        tb21 = -m2 * (du2x * tau[i, 0, 7] + du2y * tau[i, 1, 7])
-        # flux balance row: sum of the three divergence rows (bubbles eliminated)
-        sb0 = div[0, 6] + div[1, 6] + div[2, 6]
-        sb1 = div[0, 7] + div[1, 7] + div[2, 7]
-        st = n_e
-        for r in range(6):
-            pr = emap[p, r]
-            if pr < 0:
-                continue
-            if pr < st:
-                st = pr
-            k0 = kmat[p, 0, r]
-            k1 = kmat[p, 1, r]
-            cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
-            crow[p, r] = cmat[p, pr]
-            # A = M_eb - K^T M_bb (row r)
-            a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
-            a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
-            te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
-            te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
-            fe1 = te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
-            fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
-            fred[pr, 0] += w1 * fe1
-            fred[pr, 1] += w2 * fe2
-            # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K = M_ee - A K - K^T M_be
-            for s in range(6):
-                ps = emap[p, s]
-                if ps >= 0 and ps <= pr:
-                    mm = (
-                        mass[r, s]
-                        - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
-                        - (mass[s, 6] * k0 + mass[s, 7] * k1)
-                    )
-                    mred[pr, ps] += w1 * mm
-                    if not shared:
-                        mred2[pr, ps] += w2 * mm
-        cstart[p] = st
-        for c in range(2):
-            crhs[p, c] = (
-                gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
-            )
-    # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
-    if refine:
-        for p in range(nt):
-            corig[p, 0] = crhs[p, 0]
-            corig[p, 1] = crhs[p, 1]
-    if not shared:
-        for p in range(nt):
-            for r in range(cstart[p], n_e):
-                cmat2[p, r] = cmat[p, r]
-    # one factorisation for both columns, or one per membrane (column counts are
-    # runtime values: one compiled specialisation of the solvers, not one per literal)
-    ncol = 2 if shared else 1
-    for c0 in range(0, 2, ncol):
-        mr = mred if c0 == 0 else mred2
-        cm = cmat if c0 == 0 else cmat2
-        sm = smat if c0 == 0 else smat2
-        _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, interior, c0, c0 + ncol)
-        if refine:
-            for c in range(c0, c0 + ncol):
-                _refine_balance(mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c)
-    for p in range(nt):
-        t = patch_triangles[pstart + p]
-        for c in range(2):
-            z0 = beta[p, 0, c]
-            z1 = beta[p, 1, c]
-            for j in range(6):
-                pj = emap[p, j]
-                if pj >= 0:
-                    sj = fred[pj, c]
-                    z0 -= kmat[p, 0, j] * sj
-                    z1 -= kmat[p, 1, j] * sj
-                    out[c, t, j] += sj
-            out[c, t, 6] += z0
-            out[c, t, 7] += z1
-
-
-@jit
 def _reconstruct_chunk(
     order,
     k0,
@@ -621,82 +338,272 @@ def _reconstruct_chunk(
 ):
     """Patch problems of the vertices ``order[k0:k1]`` (one colour class or part of one).
 
-    Allocates one workspace for the chunk (sized for ``max_nt`` triangles);
-    no allocation inside the patch loop.
+    For each vertex a: solve its patch problem and add the local dof values to
+    ``out`` (2, M, 8).  One workspace for the chunk (sized for ``max_nt``
+    triangles); no allocation and no array views inside the patch loop.  (One
+    function rather than a loop calling a patch solver: Numba re-optimises
+    every callee inside each caller, and this level cost 1.3 s of first-run
+    compilation.)
+
+    Reduced formulation (module docstring): per triangle the bubbles are
+    eliminated through two of the three divergence equations, leaving an SPD
+    problem on the patch edge dofs with one flux-balance constraint per
+    triangle.
+
+    Weights (docs/method.md §4, per-triangle tensions): membrane i minimises
+    ``sum_K w_iK ||tau + v||_K^2`` with ``w_iK = mu_i,K0 / mu_i,K`` (K0 the
+    first patch triangle; a constant factor does not change the minimiser),
+    so M' and the right-hand side of triangle K are scaled by w_iK.  When
+    ``w_1K = w_2K`` on the whole patch (always for constant tensions, where
+    both are 1 and the arithmetic is the unweighted one) the membranes share
+    M', its factor and the Schur complement; otherwise membrane 2 gets its own
+    (``mred2``, ``cmat2``, ``smat2``).
     """
     per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
-    nt = max_nt
-    ne = 6 * max_nt  # bound on the edge dofs (3 edges per triangle)
-    edge_ids = np.empty(3 * nt, dtype=np.int64)
-    emap = np.empty((nt, 6), dtype=np.int64)
-    cstart = np.empty(nt, dtype=np.int64)
-    kmat = np.empty((nt, 2, 6))
-    beta = np.empty((nt, 2, 2))
-    mred = np.empty((ne, ne))
-    fred = np.empty((ne, 3))  # two right-hand sides and a scratch column
-    cmat = np.empty((nt, ne))
-    crhs = np.empty((nt, 2))
-    smat = np.empty((nt, nt))
+    wnt = max_nt  # workspace sizes: triangles of the largest patch
+    wne = 6 * max_nt  # and a bound on its edge dofs (3 edges per triangle)
+    edge_ids = np.empty(3 * wnt, dtype=np.int64)
+    emap = np.empty((wnt, 6), dtype=np.int64)
+    cstart = np.empty(wnt, dtype=np.int64)
+    kmat = np.empty((wnt, 2, 6))
+    beta = np.empty((wnt, 2, 2))
+    mred = np.empty((wne, wne))
+    fred = np.empty((wne, 3))  # two right-hand sides and a scratch column
+    cmat = np.empty((wnt, wne))
+    crhs = np.empty((wnt, 2))
+    smat = np.empty((wnt, wnt))
     # second factorisation, only for patches whose weights are not proportional
-    n2e = ne if per_triangle else 1
-    n2t = nt if per_triangle else 1
+    n2e = wne if per_triangle else 1
+    n2t = wnt if per_triangle else 1
     mred2 = np.empty((n2e, n2e))
     cmat2 = np.empty((n2t, n2e))
     smat2 = np.empty((n2t, n2t))
-    crow = np.empty((nt, 6))  # original rows of C, for the refinement step
-    corig = np.empty((nt, 2))
+    crow = np.empty((wnt, 6))  # original rows of C, for the refinement step
+    corig = np.empty((wnt, 2))
     mass = np.empty((8, 8))
     div = np.empty((3, 8))
     tau = np.empty((3, 2, 8))
     gloc = np.empty((3, 2))
     kapj = np.empty(3)
     for k in range(k0, k1):
-        _patch_solve(
-            order[k],
-            vertices,
-            triangles,
-            diameters,
-            tri_edges,
-            edge_tris,
-            boundary,
-            patch_ptr,
-            patch_triangles,
-            patch_local,
-            u1,
-            u2,
-            lam,
-            rho1,
-            rho2,
-            mu1,
-            mu2,
-            f1c,
-            f2c,
-            load1,
-            load2,
-            redist,
-            gamma,
-            out,
-            edge_ids,
-            emap,
-            cstart,
-            kmat,
-            beta,
-            mred,
-            fred,
-            cmat,
-            crhs,
-            smat,
-            mred2,
-            cmat2,
-            smat2,
-            crow,
-            corig,
-            mass,
-            div,
-            tau,
-            gloc,
-            kapj,
-        )
+        a = order[k]
+        pstart = patch_ptr[a]
+        nt = patch_ptr[a + 1] - pstart
+        interior = not boundary[a]
+        # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
+        shared = True
+        # contrast of the weights on the patch: beyond 1e3 one step of iterative
+        # refinement keeps the flux balance at round-off (_refine_balance)
+        refine = False
+        t0 = patch_triangles[pstart]
+        mu1_0 = mu1[0] if mu1.shape[0] == 1 else mu1[t0]
+        mu2_0 = mu2[0] if mu2.shape[0] == 1 else mu2[t0]
+        if mu1.shape[0] != 1 or mu2.shape[0] != 1:
+            lo1 = hi1 = lo2 = hi2 = 1.0
+            for p in range(nt):
+                t = patch_triangles[pstart + p]
+                w1 = mu1_0 / (mu1[0] if mu1.shape[0] == 1 else mu1[t])
+                w2 = mu2_0 / (mu2[0] if mu2.shape[0] == 1 else mu2[t])
+                lo1 = min(lo1, w1)
+                hi1 = max(hi1, w1)
+                lo2 = min(lo2, w2)
+                hi2 = max(hi2, w2)
+                if abs(w1 - w2) > 1e-13 * max(w1, w2):
+                    shared = False
+            refine = hi1 > 1e3 * lo1 or hi2 > 1e3 * lo2
+        # --- patch edges with dofs
+        ne = 0
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            i = patch_local[pstart + p]
+            for k in range(3):
+                e = tri_edges[t, k]
+                on_bnd = edge_tris[e, 1] < 0
+                if k == i and not (on_bnd and not interior):
+                    emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
+                    emap[p, 2 * k + 1] = -1
+                    continue
+                s = -1
+                for q in range(ne):
+                    if edge_ids[q] == e:
+                        s = q
+                        break
+                if s < 0:
+                    edge_ids[ne] = e
+                    s = ne
+                    ne += 1
+                emap[p, 2 * k] = 2 * s
+                emap[p, 2 * k + 1] = 2 * s + 1
+        n_e = 2 * ne
+        for r in range(n_e):
+            fred[r, 0] = 0.0
+            fred[r, 1] = 0.0
+            for s in range(r + 1):
+                mred[r, s] = 0.0
+        if not shared:
+            for r in range(n_e):
+                for s in range(r + 1):
+                    mred2[r, s] = 0.0
+        for p in range(nt):
+            for r in range(n_e):
+                cmat[p, r] = 0.0
+        r1a = 0.0 if not interior else rho1[a]
+        r2a = 0.0 if not interior else rho2[a]
+        lam_a = 0.0 if not interior else lam[a]
+        redist_a = interior and redist.shape[0] > 1 and redist[a]
+        gam = gamma[a] if redist_a else 0.0
+        # --- per triangle: local matrices, bubble elimination, scatter
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            i = patch_local[pstart + p]
+            i0 = triangles[t, 0]
+            i1 = triangles[t, 1]
+            i2 = triangles[t, 2]
+            x0 = vertices[i0, 0]
+            y0 = vertices[i0, 1]
+            x1 = vertices[i1, 0]
+            y1 = vertices[i1, 1]
+            x2 = vertices[i2, 0]
+            y2 = vertices[i2, 1]
+            area = rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau)
+            du1x, du1y, du2x, du2y, gax, gay = _gradients(
+                i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, 0.5 / area
+            )
+            m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
+            m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
+            # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
+            w1 = mu1_0 / m1
+            w2 = w1 if shared else mu2_0 / m2
+            # data (g, lambda_j)
+            dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
+            dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
+            for j in range(3):
+                mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
+                if load1.shape[0] == 1:
+                    l1 = f1c * mij
+                else:
+                    l1 = load1[t, i, j]
+                if load2.shape[0] == 1:
+                    l2 = f2c * mij
+                else:
+                    l2 = load2[t, i, j]
+                gloc[j, 0] = l1 - dot1 - r1a * mij
+                gloc[j, 1] = l2 - dot2 - r2a * mij
+                # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
+                kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
+            if redist_a:
+                # redistributed contact load (fastmem.flux.contact_redistribution): the
+                # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
+                # negative vertex values cut to 0, plus gamma_a m_K psi_a
+                ssum = kapj[0] + kapj[1] + kapj[2]
+                scale = 12.0 / area
+                n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
+                n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
+                n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
+                nsum = n0 + n1 + n2
+                # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
+                gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
+                kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
+                kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
+                kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
+            for j in range(3):
+                gloc[j, 0] += kapj[j]
+                gloc[j, 1] -= kapj[j]
+            # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
+            b00 = div[1, 6]
+            b01 = div[1, 7]
+            b10 = div[2, 6]
+            b11 = div[2, 7]
+            idet = 1.0 / (b00 * b11 - b01 * b10)
+            c00 = b11 * idet
+            c01 = -b01 * idet
+            c10 = -b10 * idet
+            c11 = b00 * idet
+            for r in range(6):
+                kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
+                kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
+            for c in range(2):
+                beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
+                beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
+            # flux target -(tau, v) of the bubbles (tau = mu psi_a grad u)
+            tb10 = -m1 * (du1x * tau[i, 0, 6] + du1y * tau[i, 1, 6])
+            tb11 = -m1 * (du1x * tau[i, 0, 7] + du1y * tau[i, 1, 7])
+            tb20 = -m2 * (du2x * tau[i, 0, 6] + du2y * tau[i, 1, 6])
+            tb21 = -m2 * (du2x * tau[i, 0, 7] + du2y * tau[i, 1, 7])
+            # flux balance row: sum of the three divergence rows (bubbles eliminated)
+            sb0 = div[0, 6] + div[1, 6] + div[2, 6]
+            sb1 = div[0, 7] + div[1, 7] + div[2, 7]
+            st = n_e
+            for r in range(6):
+                pr = emap[p, r]
+                if pr < 0:
+                    continue
+                if pr < st:
+                    st = pr
+                k0 = kmat[p, 0, r]
+                k1 = kmat[p, 1, r]
+                cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
+                crow[p, r] = cmat[p, pr]
+                # A = M_eb - K^T M_bb (row r)
+                a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
+                a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
+                te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
+                te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
+                fe1 = te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
+                fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
+                fred[pr, 0] += w1 * fe1
+                fred[pr, 1] += w2 * fe2
+                # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K = M_ee - A K - K^T M_be
+                for s in range(6):
+                    ps = emap[p, s]
+                    if ps >= 0 and ps <= pr:
+                        mm = (
+                            mass[r, s]
+                            - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
+                            - (mass[s, 6] * k0 + mass[s, 7] * k1)
+                        )
+                        mred[pr, ps] += w1 * mm
+                        if not shared:
+                            mred2[pr, ps] += w2 * mm
+            cstart[p] = st
+            for c in range(2):
+                crhs[p, c] = (
+                    gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
+                )
+        # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
+        if refine:
+            for p in range(nt):
+                corig[p, 0] = crhs[p, 0]
+                corig[p, 1] = crhs[p, 1]
+        if not shared:
+            for p in range(nt):
+                for r in range(cstart[p], n_e):
+                    cmat2[p, r] = cmat[p, r]
+        # one factorisation for both columns, or one per membrane (column counts are
+        # runtime values: one compiled specialisation of the solvers, not one per literal)
+        ncol = 2 if shared else 1
+        for c0 in range(0, 2, ncol):
+            mr = mred if c0 == 0 else mred2
+            cm = cmat if c0 == 0 else cmat2
+            sm = smat if c0 == 0 else smat2
+            _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, interior, c0, c0 + ncol)
+            if refine:
+                for c in range(c0, c0 + ncol):
+                    _refine_balance(mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c)
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            for c in range(2):
+                z0 = beta[p, 0, c]
+                z1 = beta[p, 1, c]
+                for j in range(6):
+                    pj = emap[p, j]
+                    if pj >= 0:
+                        sj = fred[pj, c]
+                        z0 -= kmat[p, 0, j] * sj
+                        z1 -= kmat[p, 1, j] * sj
+                        out[c, t, j] += sj
+                out[c, t, 6] += z0
+                out[c, t, 7] += z1
 
 
 @jit
