@@ -25,6 +25,16 @@ contrast (Kellogg): the error then decays like h^alpha and the reference
 misses most of it, which the order s and ``eta_ref`` show.
 
     python -m bench.effectivity [--quick] [--sizes 16 32 64 128] [--ref-levels 3]
+
+``--glued effectivity`` / ``--glued cost`` (issue 16, the glued contact load of
+fastmem.flux.glued_contact_load)
+instead measures, on the same triples, the bound with the glued contact load
+(what fastmem.estimate computes) and with the projected redistribution it
+replaced (``eta_projected``): the manufactured family for the five tensions of
+GLUED_MU at n = 16, 32, 64 and the checkerboard c = 1e3, 1e-3 at n = 16, 32;
+and the flux reconstruction's patches/s of both, alternating in one process.
+The results go to the key ``glued_contact_load`` of the existing
+bench/results/effectivity.json (the other keys are kept).
 """
 
 from __future__ import annotations
@@ -49,6 +59,9 @@ MANUFACTURED_MU = (
     (1e-6, 1e6),
     (1e6, 1e-6),
 )
+
+
+GLUED_MU = ((1.0, 1.0), (1.0, 1e-6), (1e-6, 1.0), (1e-6, 1e6), (1e6, 1e-6))
 
 
 def checkerboard(mesh, c, blocks=4):
@@ -83,7 +96,27 @@ def energy(fine, mu, e1, e2):
     return float(np.sqrt(max(out, 0.0)))
 
 
-def _reference_row(name, base, sizes, ref_levels, mu_of, f, methods, cache=None):
+def eta_projected(scene, r):
+    """The bound of result r with the projected redistribution (before the glued load).
+
+    fastmem.bound.evaluate as it was before the glued contact load: the flux of
+    ``reconstruct``'s default (``redistribute=True``), the cross-point
+    correction, and the plain c and data oscillation.
+    """
+    from fastmem.bound import flux_terms
+    from fastmem.estimators import combine, global_terms, local_terms
+    from fastmem.flux import cross_point_correction, reconstruct
+
+    lam = np.where(scene.mesh.boundary_vertex_mask, 0.0, r.lam)
+    fl = reconstruct(scene, r.u1, r.u2, lam, r.r1, r.r2)
+    fl = cross_point_correction(scene, r.u1, r.u2, fl)
+    f1, f2 = flux_terms(scene, r.u1, r.u2, fl)
+    loc = local_terms(scene, r.u1, r.u2, lam)
+    glob = global_terms(scene, r.u1, r.u2, lam, r.r1, r.r2)
+    return float(combine(f1, f2, loc, glob)["totals"]["eta"])
+
+
+def _reference_row(name, base, sizes, ref_levels, mu_of, f, methods, cache=None, projected=False):
     """Solve on the chain base.refine()^k, error against ref_levels beyond the finest."""
     import fastmem as fm
 
@@ -122,6 +155,10 @@ def _reference_row(name, base, sizes, ref_levels, mu_of, f, methods, cache=None)
             err = energy(fine, mu_fine, ref_u1 - u1, ref_u2 - u2)
             t = r.estimate.totals
             maps = r.estimate.maps
+            extra = {}
+            if projected:
+                eta_p = eta_projected(scene, r)
+                extra = {"eta_projected": eta_p, "effectivity_projected": eta_p / err}
             rows.append(
                 {
                     "family": name,
@@ -130,6 +167,7 @@ def _reference_row(name, base, sizes, ref_levels, mu_of, f, methods, cache=None)
                     "eta": r.eta,
                     "err_ref": err,
                     "effectivity": r.eta / err,
+                    **extra,
                     # |||u - u_h||| lies in [err_ref - eta_ref, err_ref + eta_ref] (the
                     # reference's own guaranteed bound; the current estimator's)
                     "eta_ref": eta_ref,
@@ -166,7 +204,9 @@ def _refined_chain_mesh(kind, n0):
     return fm.Mesh.square(n0) if kind == "square" else fm.Mesh.lshape(n0)
 
 
-def run_family(name, kind, sizes, ref_levels, contrasts, loads, mu_fn, methods, cache=None):
+def run_family(
+    name, kind, sizes, ref_levels, contrasts, loads, mu_fn, methods, cache=None, projected=False
+):
     """Rows of one family: every contrast c and load f, meshes of ``kind`` (square, lshape)."""
     out = []
     for c in contrasts:
@@ -181,6 +221,7 @@ def run_family(name, kind, sizes, ref_levels, contrasts, loads, mu_fn, methods, 
                 f,
                 methods,
                 cache,
+                projected,
             )
             for r in rows:
                 r.update({"c": c, "f": list(f)})
@@ -188,7 +229,7 @@ def run_family(name, kind, sizes, ref_levels, contrasts, loads, mu_fn, methods, 
     return out
 
 
-def run_manufactured(sizes, mus, methods):
+def run_manufactured(sizes, mus, methods, projected=False):
     import fastmem as fm
 
     rows = []
@@ -197,8 +238,23 @@ def run_manufactured(sizes, mus, methods):
         for n in sizes:
             mesh = fm.Mesh.square(n)
             for method in methods:
-                r = fm.solve(ms.scene(mesh), method=method, estimate=True)
+                scene = ms.scene(mesh)
+                r = fm.solve(scene, method=method, estimate=True)
                 err = ms.energy_error(mesh, r.u1, r.u2)
+                extra = {}
+                if projected:
+                    eta_p = eta_projected(scene, r)
+                    t = r.estimate.totals
+                    m = r.estimate.maps
+                    extra = {
+                        "eta_projected": eta_p,
+                        "effectivity_projected": eta_p / err,
+                        "eta_F1": float(np.sqrt((m["eta_F1"] ** 2).sum())),
+                        "eta_F2": float(np.sqrt((m["eta_F2"] ** 2).sum())),
+                        "eta_osc1": float(np.sqrt((m["eta_osc1"] ** 2).sum())),
+                        "eta_osc2": float(np.sqrt((m["eta_osc2"] ** 2).sum())),
+                        "sqrt_c": float(np.sqrt(t["c"])),
+                    }
                 rows.append(
                     {
                         "family": "manufactured",
@@ -208,10 +264,107 @@ def run_manufactured(sizes, mus, methods):
                         "eta": r.eta,
                         "err": err,
                         "effectivity": r.eta / err,
+                        **extra,
                     }
                 )
                 progress(f"  manufactured mu={mu} n={n} {method}: eff={r.eta / err:.3f}")
     return rows
+
+
+def flux_cost(n, repeats):
+    """Patches/s of the bound's flux: glued contact load vs projected redistribution.
+
+    Same triples, one process, alternating repetitions (median): constant equal
+    tensions (the default scene), constant unequal tensions with constant loads,
+    and the manufactured (1e-6, 1e6) case (callable loads), all at ``Mesh.square(n)``.
+    """
+    import fastmem as fm
+    from fastmem.flux import reconstruct
+
+    mesh = fm.Mesh.square(n)
+    scenes = {
+        "constant (1, 1), f = (-1, 1)": fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1),
+        "constant (1, 10), f = (-1, 1)": fm.Scene(mesh, mu=(1.0, 10.0), f=(-1.0, 1.0), g=0.1),
+        "manufactured (1e-6, 1e6)": fm.Manufactured(mu=(1e-6, 1e6)).scene(mesh),
+    }
+    out = []
+    for label, scene in scenes.items():
+        r = fm.solve(scene, method="exact", estimate=True)
+        lam = np.where(mesh.boundary_vertex_mask, 0.0, r.lam)
+        args = (scene, r.u1, r.u2, lam, r.r1, r.r2)
+        times = {"glued": [], "projected": []}
+        for mode in ("glued", "projected"):  # warm both (Numba, load moments)
+            reconstruct(*args, redistribute="glued" if mode == "glued" else True)
+        for _ in range(repeats):
+            for mode in ("glued", "projected"):
+                t0 = time.perf_counter()
+                reconstruct(*args, redistribute="glued" if mode == "glued" else True)
+                times[mode].append(time.perf_counter() - t0)
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        row = {
+            "scene": label,
+            "n": n,
+            "patches": mesh.n_vertices,
+            "repeats": repeats,
+            "seconds": times,
+            "patches_per_second_glued": mesh.n_vertices / med["glued"],
+            "patches_per_second_projected": mesh.n_vertices / med["projected"],
+            "time_glued_over_projected": med["glued"] / med["projected"],
+        }
+        progress(
+            f"  flux cost {label}: glued {row['patches_per_second_glued']:.0f} patches/s, "
+            f"projected {row['patches_per_second_projected']:.0f}, "
+            f"ratio {row['time_glued_over_projected']:.3f}"
+        )
+        out.append(row)
+    return out
+
+
+def run_glued(args):
+    """The ``--glued`` section: before/after on the same triples, merged into the JSON."""
+    import json
+    import os
+
+    from bench._common import machine_info, result_name, results_dir
+
+    t0 = time.perf_counter()
+    methods = ("exact", "inexact")
+    section = {
+        "note": "eta: the bound with the glued contact load (fastmem.flux.glued_contact_load); "
+        "eta_projected: the same triple with the projected redistribution it replaced; "
+        "flux_cost: fastmem.flux.reconstruct with redistribute='glued' (the bound's) vs "
+        "redistribute=True, alternating, exclusive CPU lock",
+    }
+    if args.glued == "cost":
+        section["flux_cost"] = flux_cost(64 if args.quick else 512, 1 if args.quick else 5)
+    else:
+        section["manufactured"] = run_manufactured([16, 32, 64], GLUED_MU, methods, projected=True)
+    if args.glued == "effectivity" and not args.quick:
+        section["checkerboard"] = run_family(
+            "checkerboard",
+            "square",
+            [16, 32],
+            args.ref_levels,
+            (1e3, 1e-3),
+            LOADS,
+            checkerboard,
+            methods,
+            args.cache,
+            projected=True,
+        )
+    section[f"seconds_{args.glued}"] = time.perf_counter() - t0
+    path = results_dir() / f"{result_name('effectivity', args.quick)}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = json.loads(path.read_text()) if path.exists() else {"benchmark": "effectivity"}
+    data["glued_contact_load"] = {
+        **data.get("glued_contact_load", {}),
+        "machine": machine_info(),
+        **section,
+    }
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+    progress(f"wrote {path} (key glued_contact_load)")
 
 
 def main(argv=None):
@@ -220,7 +373,16 @@ def main(argv=None):
     p.add_argument("--manufactured-sizes", type=int, nargs="*", default=None)
     p.add_argument("--only", choices=("checkerboard", "lshape", "manufactured"), default=None)
     p.add_argument("--cache", default=None, help="folder for the reference solutions (reused)")
+    p.add_argument(
+        "--glued",
+        choices=("effectivity", "cost"),
+        default=None,
+        help="the glued contact load section only: effectivities, or the flux cost",
+    )
     args = parse(p, argv)
+    if args.glued:
+        run_glued(args)
+        return
     sizes = args.sizes or ([8, 16] if args.quick else [16, 32, 64, 128])
     msizes = args.manufactured_sizes or ([16] if args.quick else [32, 64, 128])
     levels = 1 if args.quick else args.ref_levels

@@ -428,12 +428,13 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     \lambda^- - \rho_1` and :math:`\nabla\cdot\sigma_{2h} = \Pi f_2 - \ell +
     \lambda^- - \rho_2`: then :math:`r_1, r_2` are as above and the contact
     part gives :math:`(\lambda - \ell, e_1 - e_2) \le (\ell, (u_{1h} -
-    u_{2h})^+)`.  :func:`fastmem.flux.reconstruct` may replace
-    :math:`\hat\lambda` by a redistributed :math:`\ell \ge 0` (P1 on each
-    triangle) that differs from it only on triangles where
-    :math:`(u_{1h} - u_{2h})^+ = 0`, so c, the global terms and everything
-    here are unchanged; only :math:`\eta_F` changes
-    (:func:`fastmem.flux.contact_redistribution`).
+    u_{2h})^+)`.  :func:`fastmem.bound.evaluate` replaces :math:`\hat\lambda`
+    by the glued contact load :math:`\ell = \chi + \lambda^- \ge 0` of
+    :func:`fastmem.flux.glued_contact_load` when the tensions differ: not P1
+    on the closed triangles it changes, so there the oscillation is that of
+    :math:`f_1 + \chi` and :math:`f_2 - \chi`, and c is :math:`(\ell, (u_{1h} -
+    u_{2h})^+)` with the nodal values of :meth:`~fastmem.flux.ContactLoad.open_load`
+    (:func:`contact_local_terms`); the global terms are unchanged.
     """
     osc1 = _map(local["eta_osc1"], "eta_osc1", None)
     m = osc1.shape[0]

@@ -21,9 +21,11 @@ Per-triangle tensions (issue 16, docs/heterogeneous.md): the patch problems
 minimise the mu-weighted norm ``||mu_i^(-1/2)(tau_i^a + v)||`` that eta_F
 measures, and on patches in closed contact between membranes of unequal
 tension the contact load ``lam_a psi_a`` is replaced by a redistributed load
-of the same mass (:func:`contact_redistribution`); neither changes the
-guarantee, both make the bound sharper when the tensions differ by orders of
-magnitude.
+of the same mass (:func:`contact_redistribution`, the default of
+:func:`reconstruct`; the bound uses the glued contact load of
+:func:`glued_contact_load` instead, ``redistribute="glued"``); none of this
+changes the guarantee, all of it makes the bound sharper when the tensions
+differ by orders of magnitude.
 
 Data: constant loads enter exactly (no quadrature); per-vertex (P1) and
 callable loads through the moments :math:`\int_K f\lambda_i\lambda_j` computed
@@ -287,10 +289,14 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
     r1, r2 : ndarray of shape (N,), optional
         Algebraic residuals of the triple; computed by
         :func:`fastmem.linear.residuals` when omitted.
-    redistribute : bool
+    redistribute : bool or "glued"
         Redistribute the contact load between the membranes on patches in
         closed contact (default; see Notes).  ``False``: the contact load of
-        patch a is ``lam_a psi_a`` everywhere (docs/method.md §4 as written).
+        patch a is ``lam_a psi_a`` everywhere.  ``"glued"``: the glued contact
+        load of :func:`glued_contact_load` (what the bound uses, docs/method.md
+        §4); the returned ``Fluxes.contact`` then holds it (None when no vertex
+        qualifies), and the bound's oscillation and c must be taken with it
+        (:func:`fastmem.estimators.contact_local_terms`).
 
     Returns
     -------
@@ -638,10 +644,13 @@ def cross_point_correction(scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RING
 
 #: bisection steps for the shift gamma_a of the vertices whose shifted glued
 #: pressure is clipped at 0 (the final mass is made exact by a rescaling)
-GLUED_BISECTION_STEPS = 60
+GLUED_BISECTION_STEPS = 30
 #: partially closed patches: constant of the cost model of :func:`_keep_plain`
-#: (measured working range 0.01 ... 1, docs/heterogeneous.md §8)
-GLUED_COST = 0.1
+#: (smaller glues more).  Measured at n = 16, 32, 64: the manufactured (1e-6, 1e6)
+#: and (1, 1e-6) effectivities are the same for every value in 0.01 ... 100; the
+#: checkerboard c = 1e-3, f = (-1, 1) needs >= 1 at n = 64 (0.1: eta 0.163 instead
+#: of 0.135, boundary-layer vertices glued); 10 is the middle of the common range
+GLUED_COST = 10.0
 
 
 @dataclass
@@ -702,6 +711,18 @@ def _load_values(scene, i, tri, x, y, bary):
     return np.asarray(f, dtype=np.float64)[scene.mesh.triangles[tri]] @ bary.T
 
 
+#: int_K lambda_i lambda_k lambda_j / |K| = 2 a! b! c! / (a + b + c + 2)!
+_T3 = np.array(
+    [
+        [
+            [1 / 10 if i == j == k else 1 / 30 if len({i, j, k}) == 2 else 1 / 60 for j in range(3)]
+            for k in range(3)
+        ]
+        for i in range(3)
+    ]
+)
+
+
 class _Glued:
     r"""The glued pressure :math:`\zeta \ge 0` on a set of triangles, shifted per vertex.
 
@@ -711,21 +732,30 @@ class _Glued:
     :math:`(\chi^* + \gamma_a m_K)^+` at those points.  Constant and per-vertex
     loads: :math:`\chi^*` is P1 on each triangle and the shifted pressure is the
     P1 interpolant of its clipped vertex values :math:`(\chi^*(x_k) + \gamma_a
-    m_K)^+`, with the rule of degree 4 (exact for every integral below).
-    Either way it is >= 0 everywhere and its moments are what the kernel gets.
+    m_K)^+`; its masses and moments are exact closed forms
+    (:math:`\int_K\lambda_i\lambda_k\lambda_j`), and point values (the rule
+    of degree 4, exact for the oscillation of a quadratic) are built only for
+    per-vertex loads.  Either way it is >= 0 everywhere and its moments are
+    what the kernel gets.
     """
 
     def __init__(self, scene, tri, mu1, mu2):
         from .quadrature import quadrature_points, triangle_rule
 
         mesh = scene.mesh
-        self.callable = "callable" in (scene.data_kind("f1"), scene.data_kind("f2"))
+        kinds = (scene.data_kind("f1"), scene.data_kind("f2"))
+        self.callable = "callable" in kinds
+        #: point values needed (callables: everything; per-vertex loads: the oscillation)
+        self.with_points = any(k != "constant" for k in kinds)
         self.bary, self.w = triangle_rule(scene.load_degree if self.callable else 4)
         t = mesh.triangles[tri]
-        x, y = quadrature_points(mesh.vertices, t, self.bary)
-        self.f1 = _load_values(scene, 1, tri, x, y, self.bary)
-        self.f2 = _load_values(scene, 2, tri, x, y, self.bary)
         m1, m2 = mu1[:, None], mu2[:, None]
+        if self.with_points:
+            x, y = quadrature_points(mesh.vertices, t, self.bary)
+            self.f1 = _load_values(scene, 1, tri, x, y, self.bary)
+            self.f2 = _load_values(scene, 2, tri, x, y, self.bary)
+        else:
+            self.f1 = self.f2 = np.zeros((tri.size, 1))
         if self.callable:
             self.nodes = (m1 * self.f2 - m2 * self.f1) / (m1 + m2)  # (S, nq) point values
         else:
@@ -736,7 +766,6 @@ class _Glued:
             self.nodes = (m1 * g2 - m2 * g1) / (m1 + m2)  # (S, 3) vertex values
         self.m = mu1 * mu2 / (mu1 + mu2)
         self.areas = mesh.areas[tri]
-        self.outer = (self.bary[:, :, None] * self.bary[:, None, :]).reshape(-1, 9)
 
     def restrict(self, rows):
         """Return the same pressure on the triangles ``tri[rows]`` only."""
@@ -746,57 +775,88 @@ class _Glued:
         out.f1, out.f2 = self.f1[rows], self.f2[rows]
         return out
 
+    def _shifted(self, shift):
+        """Clipped values per vertex i: (S, 3, nq) at points, or (S, 3, 3) at the vertices."""
+        return np.maximum(self.nodes[:, None, :] + (shift * self.m[:, None])[:, :, None], 0.0)
+
     def points(self, shift):
         """Shifted, clipped pressure at the rule's points: shift (S, 3) -> (S, 3, nq)."""
-        v = np.maximum(self.nodes[:, None, :] + (shift * self.m[:, None])[:, :, None], 0.0)
+        v = self._shifted(shift)
         return v if self.callable else v @ self.bary.T
 
-    def masses(self, shift, rows=None):
-        """``(psi_i zeta_i, 1)_K`` for the three vertices: (S, 3) (or on ``rows``)."""
-        zi = self.points(shift)
-        b, w = self.bary, self.w
-        ar = self.areas if rows is None else self.areas[rows]
-        return np.einsum("kiq,q,qi->ki", zi, w, b) * ar[:, None]
+    def masses(self, shift):
+        """``(psi_i zeta_i, 1)_K`` for the three vertices: (S, 3)."""
+        v = self._shifted(shift)
+        if self.callable:
+            wb = self.w[:, None] * self.bary  # (nq, 3)
+            out = np.stack([v[:, i, :] @ wb[:, i] for i in range(3)], axis=1)
+            return out * self.areas[:, None]
+        # int_K lambda_i lambda_k = |K| (1 + [i = k]) / 12
+        own = v[:, [0, 1, 2], [0, 1, 2]]
+        return (v.sum(axis=2) + own) * (self.areas / 12.0)[:, None]
 
     def moments(self, shift):
         """``(psi_i zeta_i, lambda_j)_K``: (S, 3, 3)."""
-        zi = self.points(shift)
-        b, w = self.bary, self.w
-        return np.einsum("kiq,q,qi,qj->kij", zi, w, b, b) * self.areas[:, None, None]
+        v = self._shifted(shift)
+        if self.callable:
+            b, w = self.bary, self.w
+            out = np.stack([v[:, i, :] @ ((w * b[:, i])[:, None] * b) for i in range(3)], axis=1)
+            return out * self.areas[:, None, None]
+        return np.einsum("sik,ikj->sij", v, _T3) * self.areas[:, None, None]
 
 
-def _keep_plain(scene, gap, lam, closed, partial, mu1, mu2) -> np.ndarray:
+def _keep_plain(scene, u1, u2, lam, closed, partial, mu1, mu2) -> np.ndarray:
     r"""Return the partially closed patches that keep :math:`\lambda_a\psi_a` (bool (N,)).
 
     Gluing a vertex a whose patch also has open triangles (gap > 0 somewhere)
     moves its load off those triangles.  That saves
     :math:`\lambda_a(\psi_a, (u_{1h} - u_{2h})^+)` in c (which enters η like
-    twice a squared flux term), and costs the glued pressure
-    :math:`D^{open}_a = (\psi_a\chi^{*+}, 1)_{open}` that the open triangles
-    no longer receive and that the fluxes must carry across about one cell,
-    roughly ``GLUED_COST`` :math:`(\mu_1^{-1} + \mu_2^{-1}) (D^{open}_a)^2`.
-    The vertex stays plain when the second exceeds the first.  Manufactured
-    family: the pressure vanishes at the free boundary, :math:`D^{open}` is
-    small and c large relative to the error, so these vertices are glued; a
-    floppy boundary layer (checkerboard, small c) concentrates the pressure at
-    the edge of contact, where gluing would cost more.  The choice only
-    affects sharpness; any choice keeps the guarantee.
+    twice a squared flux term), and changes how much of membrane i's patch
+    data :math:`g_i^a` (docs/method.md §4) sits on the open triangles,
+    :math:`I_i = \sum_{K\ open}(g_i^a, 1)_K`, which the flux has to carry
+    across to the closed ones: about ``GLUED_COST`` :math:`\sum_i
+    I_i^2/\mu_i` in the squared flux terms.  The vertex stays plain when
+    gluing costs more there than it saves in c.  Manufactured family: the
+    open triangles are out of contact, their data balance without load and
+    c is large relative to the error, so the free-boundary vertices are glued;
+    a floppy boundary layer (checkerboard, small c) is in contact on the open
+    triangles too, where removing the load would unbalance the floppy
+    membrane.  The choice only affects sharpness; any choice keeps the
+    guarantee.
     """
     mesh = scene.mesh
     n = mesh.n_vertices
     triangles = mesh.triangles
     osub = np.flatnonzero(~closed & partial[triangles].any(axis=1))
     ot = triangles[osub]
-    og = _Glued(scene, osub, mu1[osub], mu2[osub])
-    om = np.where(partial[ot], og.masses(np.zeros((osub.size, 3))), 0.0)
-    d_open = np.bincount(ot.ravel(), weights=om.ravel(), minlength=n)
-    kappa = np.zeros(n)
-    np.maximum.at(kappa, ot.ravel(), np.repeat(1.0 / mu1[osub] + 1.0 / mu2[osub], 3))
+    areas = mesh.areas[osub]
+    grads = mesh.gradients[osub]  # (S, 3, 2)
+    own = partial[ot]
+    imb = []
+    for i, (u, mu) in enumerate(((u1, mu1), (u2, mu2)), start=1):
+        mom = load_moments(scene, i)
+        f = scene.f1 if i == 1 else scene.f2
+        if mom is None:
+            load = np.repeat(float(f) * areas[:, None] / 3.0, 3, axis=1)
+        else:
+            load = mom[osub].sum(axis=2)  # (psi_a f, 1)_K
+        gu = np.einsum("sk,skd->sd", u[ot], grads)
+        stiff = mu[osub, None] * np.einsum("skd,sd->sk", grads, gu) * areas[:, None]
+        data = np.where(own, load - stiff, 0.0)
+        imb.append(np.bincount(ot.ravel(), weights=data.ravel(), minlength=n))
+    contact = np.where(own, lam[ot] * areas[:, None] / 3.0, 0.0)  # (lam_a psi_a, 1)_K
+    load_open = np.bincount(ot.ravel(), weights=contact.ravel(), minlength=n)
+    inv1 = np.zeros(n)
+    inv2 = np.zeros(n)
+    np.maximum.at(inv1, ot.ravel(), np.repeat(1.0 / mu1[osub], 3))
+    np.maximum.at(inv2, ot.ravel(), np.repeat(1.0 / mu2[osub], 3))
+    glued = imb[0] ** 2 * inv1 + imb[1] ** 2 * inv2
+    plain = (imb[0] + load_open) ** 2 * inv1 + (imb[1] - load_open) ** 2 * inv2
     # (psi_a, gap^+)_K by the vertex-weighted rule (|K|/12)(sum + own) on the positive part
-    gp = np.maximum(gap[ot], 0.0)
-    gpsi = (gp.sum(axis=1, keepdims=True) + gp) * (mesh.areas[osub] / 12.0)[:, None]
-    g_open = np.bincount(ot.ravel(), weights=gpsi.ravel(), minlength=n)
-    return partial & (GLUED_COST * kappa * d_open**2 > 2.0 * lam * g_open)
+    gp = np.maximum((u1 - u2)[ot], 0.0)
+    gpsi = (gp.sum(axis=1, keepdims=True) + gp) * (areas / 12.0)[:, None]
+    g_open = np.bincount(ot.ravel(), weights=np.where(own, gpsi, 0.0).ravel(), minlength=n)
+    return partial & (GLUED_COST * (glued - plain) > 2.0 * lam * g_open)
 
 
 def _oscillation_at_points(q, bary, w, areas):
@@ -908,13 +968,15 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
     triangles = mesh.triangles
     unequal = np.bincount(triangles[mu1 != mu2].ravel(), minlength=n) > 0
     lam = np.asarray(lam, dtype=np.float64)
-    gap = np.asarray(u1, dtype=np.float64) - np.asarray(u2, dtype=np.float64)
+    u1 = np.asarray(u1, dtype=np.float64)
+    u2 = np.asarray(u2, dtype=np.float64)
+    gap = u1 - u2
     closed = (gap[triangles] <= 0.0).all(axis=1)
     flags = unequal & (lam > 0.0) & ~mesh.boundary_vertex_mask
     flags &= np.bincount(triangles[closed].ravel(), minlength=n) > 0
     partial = flags & (np.bincount(triangles[~closed].ravel(), minlength=n) > 0)
     if partial.any():
-        flags &= ~_keep_plain(scene, gap, lam, closed, partial, mu1, mu2)
+        flags &= ~_keep_plain(scene, u1, u2, lam, closed, partial, mu1, mu2)
     if not flags.any():
         return None
     sub = np.flatnonzero(closed & flags[triangles].any(axis=1))
@@ -960,21 +1022,30 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
     moments = s_loc[:, :, None] * mom
     # chi at the points: sum_glued s_a lambda_a zeta_a + sum_plain lam_a lambda_a
     gl = gl.restrict(keep)
-    bary, w = gl.bary, gl.w
-    zi = gl.points(shift)  # (S, 3, nq)
-    glued_part = np.einsum("ki,kiq,qi->kq", s_loc, zi, bary)
     plain = np.where(flags[tri], 0.0, lam[tri])
-    chi = glued_part + plain @ bary.T
     lam_minus = np.maximum(lam, 0.0) - lam
-    ell = chi + lam_minus[tri] @ bary.T
+    # ell = chi + lam^- at the vertices (P1 pressure) and at the points: >= 0 by construction
+    ell = []
+    if not gl.callable:
+        ell.append(s_loc * gl._shifted(shift)[:, [0, 1, 2], [0, 1, 2]] + plain + lam_minus[tri])
+    osc1 = np.zeros(sub.size)
+    osc2 = np.zeros(sub.size)
+    if gl.with_points:
+        # chi at the points: sum_glued s_a lambda_a zeta_a + sum_plain lam_a lambda_a
+        bary, w = gl.bary, gl.w
+        zi = gl.points(shift)
+        chi = sum(s_loc[:, i, None] * zi[:, i, :] * bary[:, i] for i in range(3))
+        chi = chi + plain @ bary.T
+        areas = mesh.areas[sub]
+        h = mesh.diameters[sub] / np.pi
+        osc1 = h * _oscillation_at_points(gl.f1 + chi, bary, w, areas) / np.sqrt(mu1[sub])
+        osc2 = h * _oscillation_at_points(gl.f2 - chi, bary, w, areas) / np.sqrt(mu2[sub])
+        ell.append(chi + lam_minus[tri] @ bary.T)
+    # (constant loads: chi is P1 on each triangle and f constant, so no oscillation)
+    ell = np.concatenate(ell, axis=1)
     ell_min = float(ell.min()) if ell.size else 0.0
     if ell_min < -1e-12 * max(float(np.abs(ell).max()), 1e-300):  # pragma: no cover
         raise AssertionError(f"glued contact load is negative: {ell_min:.3e}")
-    areas = mesh.areas[sub]
-    h = mesh.diameters[sub] / np.pi
-    f1q, f2q = gl.f1, gl.f2
-    osc1 = h * _oscillation_at_points(f1q + chi, bary, w, areas) / np.sqrt(mu1[sub])
-    osc2 = h * _oscillation_at_points(f2q - chi, bary, w, areas) / np.sqrt(mu2[sub])
     return ContactLoad(
         flags=flags,
         gamma=np.where(flags, gamma, 0.0),
