@@ -332,20 +332,17 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
         moments.append(np.zeros((1, 3, 3)) if mom is None else mom)
     order, color_ptr = _coloring(mesh)
     contact = None
+    chi_row = chi_mom = None
     if redistribute == "glued":
         flags = gamma = None
         contact = glued_contact_load(scene, u1, u2, lam_i)
         if contact is not None:
-            # the kernel takes the load of patch a on K as moments (psi_a f, lambda_j)_K
-            # plus lam_a psi_a: the glued vertices get lam 0 and chi^a in the moments
-            areas = mesh.areas
-            mij = (areas / 12.0)[:, None, None] * (1.0 + np.eye(3))[None]
-            for i in (0, 1):
-                mom = moments[i] if consts[i] == 0.0 and moments[i].shape[0] > 1 else None
-                full = consts[i] * mij if mom is None else mom.copy()
-                full[contact.tri] += contact.moments if i == 0 else -contact.moments
-                moments[i] = full
-                consts[i] = 0.0
+            # the kernel adds chi^a's moments (chi^a, lambda_j)_K of the S triangles in
+            # contact to membrane 1's load and takes them from membrane 2's; the glued
+            # vertices get lam 0 (their contact load is chi^a, not lam_a psi_a)
+            chi_row = np.full(mesh.n_triangles, -1, dtype=np.int32)
+            chi_row[contact.tri] = np.arange(len(contact.tri), dtype=np.int32)
+            chi_mom = contact.moments
             lam_i = np.where(contact.flags, 0.0, lam_i)
     elif redistribute:
         flags, gamma = contact_redistribution(scene, u1, u2, lam_i)
@@ -378,6 +375,8 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
         np.zeros(1) if gamma is None else gamma,
         int(np.diff(mesh.patch_ptr).max()),
         numba.get_num_threads(),
+        chi_row,
+        chi_mom,
     )
     return Fluxes(mesh=mesh, coef=coef, contact=contact)
 

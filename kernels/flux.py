@@ -333,6 +333,8 @@ def _reconstruct_chunk(
     load2,
     redist,
     gamma,
+    chi_row,
+    chi_mom,
     max_nt,
     out,
 ):
@@ -487,6 +489,13 @@ def _reconstruct_chunk(
                     l2 = f2c * mij
                 else:
                     l2 = load2[t, i, j]
+                if chi_row.shape[0] == triangles.shape[0]:
+                    # glued contact load on this triangle: (chi^a, lambda_j) moves
+                    # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
+                    s_chi = chi_row[t]
+                    if s_chi >= 0:
+                        l1 += chi_mom[s_chi, i, j]
+                        l2 -= chi_mom[s_chi, i, j]
                 gloc[j, 0] = l1 - dot1 - r1a * mij
                 gloc[j, 1] = l2 - dot2 - r2a * mij
                 # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
@@ -688,6 +697,8 @@ def precompile(part: str) -> None:
             np.zeros((1, 3, 3)),
             np.zeros(1, dtype=np.bool_),
             np.zeros(1),
+            np.full(1, -1, dtype=np.int32),
+            np.zeros((1, 3, 3)),
             1,
             coef,
         )
@@ -748,6 +759,8 @@ def reconstruct_colored(
     gamma,
     max_nt,
     n_threads,
+    chi_row=None,
+    chi_mom=None,
 ):
     """Equilibrated fluxes of both membranes, canonical RT1 coefficients (2, M, 8).
 
@@ -781,6 +794,12 @@ def reconstruct_colored(
     n_threads : int
         Threads; each colour class is cut into at most this many chunks, each
         with its own workspace.
+    chi_row, chi_mom : int32 (M,) and float64 (S, 3, 3), optional
+        Glued contact load (:func:`fastmem.flux.glued_contact_load`): on
+        triangle t with ``s = chi_row[t] >= 0`` the load moments of membrane 1
+        gain ``chi_mom[s]`` and those of membrane 2 lose it (row i: the vertex
+        of local index i; zero rows for vertices that are not glued).  Only the
+        S triangles in contact are stored, not full (M, 3, 3) load copies.
 
     Threading: one colour class at a time, its vertices cut into chunks run by
     :mod:`._par` (serial Numba kernels without the GIL, so no parallel
@@ -794,8 +813,14 @@ def reconstruct_colored(
     if compile_gate is not None:
         gate, compile_gate = compile_gate, None
         gate()
-    u1, u2, lam, rho1, rho2, mu1, mu2, load1, load2, redist, gamma = (
-        _writable(a) for a in (u1, u2, lam, rho1, rho2, mu1, mu2, load1, load2, redist, gamma)
+    if chi_row is None or chi_mom is None:
+        chi_row = np.full(1, -1, dtype=np.int32)
+        chi_mom = np.zeros((1, 3, 3))
+    chi_row = np.ascontiguousarray(chi_row, dtype=np.int32)
+    chi_mom = np.ascontiguousarray(chi_mom, dtype=np.float64)
+    u1, u2, lam, rho1, rho2, mu1, mu2, load1, load2, redist, gamma, chi_row, chi_mom = (
+        _writable(a)
+        for a in (u1, u2, lam, rho1, rho2, mu1, mu2, load1, load2, redist, gamma, chi_row, chi_mom)
     )
     m = triangles.shape[0]
     out = np.zeros((2, m, 8))
@@ -823,6 +848,8 @@ def reconstruct_colored(
         load2,
         redist,
         gamma,
+        chi_row,
+        chi_mom,
         int(max_nt),
         out,
     )
