@@ -165,6 +165,7 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     fluxes = cross_point_correction(scene, u1, u2, fluxes)
     t1 = time.perf_counter()
     eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
+    del fluxes  # the RT1 coefficients (256 B/vertex) are not needed below
     if local is None:
         local = local_terms(scene, u1, u2, lam)
     elif local.get("eta_osc1") is None or local.get("eta_osc2") is None:
