@@ -276,9 +276,9 @@ def _write_outputs(result, outputs) -> None:
 
 def _warm_up(args, method, mesh, adaptive) -> float:
     """Compile or load the kernels first, saying so: the first run compiles for ~10 s."""
-    from .warmup import pipeline_kernels_cached, warm_up
+    from .warmup import kernels_cached, warm_up
 
-    cached = pipeline_kernels_cached()
+    cached = kernels_cached()
     if cached is False:
         text = "  compiling Numba kernels (first run only, about 10 s) ..."
     else:

@@ -86,39 +86,38 @@ def _counts(dispatchers) -> tuple[int, int]:
     return hits, misses
 
 
-def kernels_cached() -> bool | None:
-    """Whether Numba's cache holds compiled code for every fastmem kernel.
+def kernels_cached(which: str = "pipeline") -> bool | None:
+    """Whether Numba's cache holds compiled code for fastmem's kernels (a hint).
 
-    Looks for the cache index file of each kernel (where Numba would write it,
-    including its fallback cache directory).  Returns None when that cannot be
-    determined (a Numba version with another cache layout).  A cached kernel
-    whose source changed since is still recompiled: this is a hint for
-    progress messages, not a promise.
+    ``which="pipeline"`` (default) looks at the largest kernels of a default
+    solve, so that it turns True after the first ``fastmem run``; ``"all"``
+    at every kernel, including those a default solve never uses (mesh
+    refinement, nested dissection).  Looks for the cache index file of each
+    kernel (where Numba would write it, including its fallback cache
+    directory).  Returns None when that cannot be determined (a Numba version
+    with another cache layout).  A cached kernel whose source changed since is
+    still recompiled: this is a hint for progress messages, not a promise.
     """
+    if which not in ("pipeline", "all"):
+        raise ValueError(f"which must be 'pipeline' or 'all', got {which!r}")
+    from .kernels import assembly, flux, topology
+
     try:
-        return all(_cached(d) for d in _dispatchers() if d._can_compile)
+        if which == "all":
+            kernels = [d for d in _dispatchers() if d._can_compile]
+        else:
+            kernels = [
+                flux._reconstruct_chunk,
+                assembly._stiffness_csr_range,
+                topology.edge_topology,
+            ]
+        return all(_cached(d) for d in kernels)
     except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
         return None
 
 
 def _cached(dispatcher) -> bool:
     return os.path.exists(dispatcher._cache._cache_file._index_path)
-
-
-def pipeline_kernels_cached() -> bool | None:
-    """Whether the largest kernels of a default solve are in Numba's cache (a hint).
-
-    Unlike :func:`kernels_cached` this ignores kernels a default solve does not
-    use (mesh refinement, nested dissection), so that it turns True after the
-    first ``fastmem run``.
-    """
-    from .kernels import assembly, flux, topology
-
-    try:
-        kernels = (flux._reconstruct_chunk, assembly._stiffness_csr_range, topology.edge_topology)
-        return all(_cached(d) for d in kernels)
-    except Exception:  # noqa: BLE001 - private Numba layout
-        return None
 
 
 def _cpus() -> int:

@@ -74,6 +74,7 @@ def test_cold_run_with_helper_matches_in_process_solve(tmp_path):
     cmd = [sys.executable, "-m", "fastmem", "run", "--n", "16", "--no-save"]
     res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=False)
     assert res.returncode == 0, res.stderr[-2000:]
+    assert "compiling Numba kernels" in res.stdout, res.stdout  # kernels_cached() False
     if warmup._cpus() >= 2:
         assert "in a helper process" in res.stdout, res.stdout
     expected = fm.solve(fm.Scene(fm.Mesh.square(16), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
@@ -96,6 +97,12 @@ def test_failing_helper_falls_back_to_compiling_here(monkeypatch):
     assert done.helper
     assert kf.compile_gate is None
     assert warmup._helper is None
+
+
+def test_kernels_cached_refuses_an_unknown_scope():
+    with pytest.raises(ValueError, match="'some'"):
+        warmup.kernels_cached("some")
+    assert warmup.kernels_cached("all") in (True, False)
 
 
 def test_helper_switched_off(monkeypatch):

@@ -19,13 +19,12 @@ import pytest
 from meshes import perturbed_square
 from test_bound import _triples
 from test_flux import _normal_jump, _quad_points
-from test_weighted_flux import _checkerboard
+from test_weighted_flux import _checkerboard, contact_triple
 
 import fastmem as fm
 import fastmem.flux as flux
 from fastmem.bound import evaluate
 from fastmem.estimators import local_terms
-from fastmem.linear import residuals
 from fastmem.quadrature import triangle_rule
 
 CASES = {
@@ -62,20 +61,7 @@ CASES = {
 
 @functools.cache
 def case(name):
-    mesh_fn, scene_fn, perturb = CASES[name]
-    mesh = mesh_fn()
-    scene = scene_fn(mesh)
-    sol = fm.solve(scene, method="exact", estimate=False)
-    u1, u2, lam = sol.u1, sol.u2, sol.lam
-    if perturb:  # inexact: R != 0; the same noise on both membranes keeps the gap
-        rng = np.random.default_rng(29)
-        inner = mesh.interior_vertices
-        noise = 1e-4 * rng.standard_normal(inner.size)
-        u1, u2 = u1.copy(), u2.copy()
-        u1[inner] += noise
-        u2[inner] += noise
-    lam = np.where(mesh.boundary_vertex_mask, 0.0, lam)
-    r1, r2 = residuals(scene, u1, u2, lam)
+    mesh, scene, u1, u2, lam, r1, r2 = contact_triple(*CASES[name], seed=29)
     contact = flux.glued_contact_load(scene, u1, u2, lam)
     assert contact is not None, name
     assert contact.flags.sum() >= 3, name
