@@ -180,8 +180,19 @@ def test_decoupled_finest_level_builds_no_unused_hierarchy():
         assert last["amg_setups"] <= last["newton"]
 
 
+def _csr_levels_as_bsr(ml):
+    """Undo the CSR conversion of the coarse operators (the block kernel's arithmetic)."""
+    for lv in ml.levels[1:]:
+        lv.A = lv.A.tobsr(blocksize=(1, 1))
+
+
 def test_trimmed_hierarchy_cycles_bit_for_bit(monkeypatch):
-    """R as the transpose view of P and no B: the same preconditioner output, bit for bit."""
+    """R as the transpose view of P and no B: the same preconditioner output, bit for bit.
+
+    The coarse operators as CSR change only the rounding of Gauss-Seidel's diagonal
+    division: with them turned back into 1 x 1 BSR the cycles are bit-identical to the
+    untrimmed hierarchy, and as CSR they agree to round-off.
+    """
     import fastmem.amg as amg
     from fastmem.linear import DecoupledStep
     from fastmem.steps import gap_matrix
@@ -196,6 +207,74 @@ def test_trimmed_hierarchy_cycles_bit_for_bit(monkeypatch):
             full = amg.amg_preconditioner(mat)
         assert all(not hasattr(lv, "B") for lv in trimmed.ml.levels)
         assert any(lv.R.format == "csc" for lv in trimmed.ml.levels[:-1])
-        for _ in range(2):
-            r = rng.standard_normal(mat.shape[0])
+        assert all(lv.A.format == "csr" for lv in trimmed.ml.levels)
+        assert any(lv.A.format == "bsr" for lv in full.ml.levels[1:])
+        rs = [rng.standard_normal(mat.shape[0]) for _ in range(2)]
+        for r in rs:
+            z, ref = trimmed(r), full(r)
+            assert np.max(np.abs(z - ref)) <= 1e-13 * np.max(np.abs(ref))
+        _csr_levels_as_bsr(trimmed.ml)
+        for r in rs:
             np.testing.assert_array_equal(trimmed(r).view(np.uint64), full(r).view(np.uint64))
+
+
+def test_bsr_canonical_check():
+    """The O(nnz) test behind the setup's fast sum_duplicates: sorted, no duplicates."""
+    import scipy.sparse as sp
+
+    from fastmem.amg import _bsr_is_canonical
+
+    def bsr(indptr, indices):
+        data = np.arange(1.0, len(indices) + 1).reshape(-1, 1, 1)
+        return sp.bsr_matrix((data, np.array(indices), np.array(indptr)), shape=(3, 3))
+
+    assert _bsr_is_canonical(bsr([0, 2, 3, 5], [0, 2, 1, 0, 2]))
+    assert _bsr_is_canonical(bsr([0, 0, 1, 1], [2]))  # empty rows
+    assert not _bsr_is_canonical(bsr([0, 2, 3, 5], [2, 0, 1, 0, 2]))  # unsorted row
+    assert not _bsr_is_canonical(bsr([0, 2, 3, 5], [0, 0, 1, 0, 2]))  # duplicate
+    # a row ending in a large column followed by a row starting small is fine
+    assert _bsr_is_canonical(bsr([0, 1, 2, 3], [2, 0, 1]))
+
+
+def test_fast_dedup_setup_builds_the_same_hierarchy(monkeypatch):
+    """The setup with the loop-free sum_duplicates gives pyamg's hierarchy exactly.
+
+    Same operators, prolongators and restrictions on every level, bit for bit, as
+    with scipy's own method; the replacement is installed during the setup only.
+    """
+    import contextlib
+
+    import scipy.sparse._bsr as bsr_module
+
+    import fastmem.amg as amg
+    from fastmem.linear import DecoupledStep
+    from fastmem.steps import gap_matrix
+
+    original = bsr_module._bsr_base.sum_duplicates
+    checked = amg._checked_sum_duplicates
+    calls = []
+
+    def counting(self):
+        calls.append(self.shape)
+        return checked(self)
+
+    st = DecoupledStep(fm.Scene(fm.Mesh.square(96), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+    active = np.random.default_rng(4).random(st.a_ii.shape[0]) < 0.3
+    for mat in (st.a_ii, gap_matrix(st.a_ii, active)):
+        with monkeypatch.context() as m:
+            m.setattr(amg, "_trim", lambda ml: None)
+            m.setattr(amg, "_checked_sum_duplicates", counting)
+            fast = amg.amg_preconditioner(mat)
+            assert bsr_module._bsr_base.sum_duplicates is original  # removed after the setup
+            m.setattr(amg, "_fast_bsr_dedup", contextlib.nullcontext)
+            plain = amg.amg_preconditioner(mat)
+        assert calls, "the setup never reached sum_duplicates: the test checks nothing"
+        for a, b in zip(fast.ml.levels, plain.ml.levels, strict=True):
+            for name in ("A", "P", "R"):
+                x, y = getattr(a, name, None), getattr(b, name, None)
+                if x is None and y is None:
+                    continue
+                x, y = x.tocsr(), y.tocsr()
+                np.testing.assert_array_equal(x.indptr, y.indptr)
+                np.testing.assert_array_equal(x.indices, y.indices)
+                np.testing.assert_array_equal(x.data.view(np.uint64), y.data.view(np.uint64))
