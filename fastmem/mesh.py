@@ -553,23 +553,36 @@ class Mesh:
         if diagonal == "symmetric":  # exact symmetry of the coordinates too
             xs = 0.5 * (xs - xs[::-1]) + 0.5 * (x0 + x1)
             ys = 0.5 * (ys - ys[::-1]) + 0.5 * (y0 + y1)
-        X, Y = np.meshgrid(xs, ys)
-        vertices = np.stack([X.ravel(), Y.ravel()], axis=1)
-        i, j = np.meshgrid(np.arange(nx), np.arange(ny))
-        i, j = i.ravel(), j.ravel()
-        a = j * (nx + 1) + i
-        b, c, d = a + 1, a + nx + 2, a + nx + 1
+        # written in place, no (M, 2, 3) candidates for both diagonals: at n = 2048 the
+        # stacked temporaries took 2.4 of the generator's 4 s (and 2.5x its memory)
+        vertices = np.empty(((nx + 1) * (ny + 1), 2))
+        vertices[:, 0] = np.tile(xs, ny + 1)
+        vertices[:, 1] = np.repeat(ys, nx + 1)
+        a = (np.arange(ny, dtype=np.int64) * (nx + 1))[:, None] + np.arange(nx, dtype=np.int64)
+        a = a.ravel()  # lower-left corner of each cell, cells row by row
+        tris = np.empty((a.size, 2, 3), dtype=np.int64)
+        # cell (a, b = a + 1, c = a + nx + 2, d = a + nx + 1), counter-clockwise from a:
+        # "slash" diagonal a-c: (a, b, c), (a, c, d); "backslash" b-d: (a, b, d), (b, c, d)
+        tris[:, 0, 0] = a
+        tris[:, 0, 1] = a + 1
+        tris[:, 1, 1] = a + (nx + 2)
+        tris[:, 1, 2] = a + (nx + 1)
         if diagonal == "right":
-            slash = np.ones(a.size, dtype=bool)
+            tris[:, 0, 2] = tris[:, 1, 1]
+            tris[:, 1, 0] = a
         elif diagonal == "left":
-            slash = np.zeros(a.size, dtype=bool)
+            tris[:, 0, 2] = tris[:, 1, 2]
+            tris[:, 1, 0] = tris[:, 0, 1]
         else:
+            i = np.arange(nx)
+            j = np.arange(ny)
             xc = (2 * i + 1 - nx) * 1.0
             yc = (2 * j + 1 - ny) * 1.0
-            slash = xc * yc >= 0
-        t_slash = np.stack([np.stack([a, b, c], 1), np.stack([a, c, d], 1)], axis=1)
-        t_back = np.stack([np.stack([a, b, d], 1), np.stack([b, c, d], 1)], axis=1)
-        tris = np.where(slash[:, None, None], t_slash, t_back).reshape(-1, 3)
+            slash = (yc[:, None] * xc[None, :] >= 0).ravel()
+            tris[:, 0, 2] = np.where(slash, tris[:, 1, 1], tris[:, 1, 2])
+            tris[:, 1, 0] = np.where(slash, a, tris[:, 0, 1])
+        del a
+        tris = tris.reshape(-1, 3)
         mesh = cls(vertices, tris, validate=False)
         if nx % 2 == 0 and ny % 2 == 0 and min(nx, ny) >= 4:
             mesh._coarse_recipe = ("rectangle", (nx // 2, ny // 2, bounds, diagonal))

@@ -186,6 +186,40 @@ def test_rectangle_bounds(diagonal):
     check_topology(mesh)
 
 
+def _rectangle_reference(nx, ny, bounds, diagonal):
+    """Cell by cell in plain Python: vertices row by row, two triangles per cell."""
+    x0, x1, y0, y1 = bounds
+    xs, ys = np.linspace(x0, x1, nx + 1), np.linspace(y0, y1, ny + 1)
+    if diagonal == "symmetric":
+        xs = 0.5 * (xs - xs[::-1]) + 0.5 * (x0 + x1)
+        ys = 0.5 * (ys - ys[::-1]) + 0.5 * (y0 + y1)
+    vertices = [(x, y) for y in ys for x in xs]
+    tris = []
+    for j in range(ny):
+        for i in range(nx):
+            a = j * (nx + 1) + i
+            b, c, d = a + 1, a + nx + 2, a + nx + 1
+            if diagonal == "right":
+                slash = True
+            elif diagonal == "left":
+                slash = False
+            else:  # towards the centre: lower-left / upper-right quadrants use a-c
+                slash = (2 * i + 1 - nx) * (2 * j + 1 - ny) >= 0
+            tris += [(a, b, c), (a, c, d)] if slash else [(a, b, d), (b, c, d)]
+    return np.array(vertices), np.array(tris)
+
+
+@pytest.mark.parametrize("diagonal", DIAGONALS)
+@pytest.mark.parametrize("nx, ny", [(1, 1), (2, 3), (5, 4), (6, 6), (7, 2)])
+def test_rectangle_matches_cell_by_cell_reference(nx, ny, diagonal):
+    bounds = (-3.0, 2.0, 0.5, 0.75)
+    mesh = Mesh.rectangle(nx, ny, bounds=bounds, diagonal=diagonal)
+    v, t = _rectangle_reference(nx, ny, bounds, diagonal)
+    np.testing.assert_array_equal(mesh.vertices, v)
+    np.testing.assert_array_equal(mesh.triangles, t)
+    assert mesh.triangles.dtype == np.int64
+
+
 def test_rectangle_ny_defaults_to_nx():
     mesh = Mesh.rectangle(3)
     assert mesh.n_vertices == 16
