@@ -28,6 +28,11 @@ matrices and mesh topology are built before any timing, so every method
 starts from the same state.
 
     python -m bench.contact_solve [--quick] [--sizes 256 512 1024 2048]
+    python -m bench.contact_solve --only-inexact --sizes 1024 2048   # contact_pu.json
+
+``--only-inexact`` runs only fastmem's default solve (the issue-15 figure in
+Poisson units, with the first solve of each scene in the process beside the
+median) and writes ``contact_pu.json`` instead of ``contact_solve.json``.
 """
 
 import numpy as np
@@ -134,7 +139,10 @@ def _triple(r):
 
 def configurations(n, a):
     """The (method, nested, path) runs at size n."""
-    runs = [("inexact", "auto", "decoupled"), ("exact-amg", "auto", "decoupled")]
+    runs = [("inexact", "auto", "decoupled")]
+    if a.only_inexact:  # the issue-15 figure: the default solve alone, in Poisson units
+        return runs
+    runs.append(("exact-amg", "auto", "decoupled"))
     if n <= a.general_max:
         runs += [("inexact", "auto", "general"), ("exact-amg", "auto", "general")]
     if n <= a.plain_max:
@@ -178,7 +186,7 @@ def run(sizes, a):
                 results[(method, nested, path)] = res
                 rows.append(row)
                 _finish_row(row, n, name, mesh, unit, unit_info)
-            if naive_ok and n <= a.naive_max:
+            if naive_ok and n <= a.naive_max and not a.only_inexact:
                 row, res = run_naive(scene, a.repeat, a.naive_budget, man)
                 results[("naive", False, "coupled")] = res
                 rows.append(row)
@@ -189,6 +197,8 @@ def run(sizes, a):
             ref_key = ("exact", False, "decoupled")
             if ref_key not in results:
                 ref_key = ("exact-amg", "auto", "decoupled")
+            if ref_key not in results:  # --only-inexact: compared with itself
+                ref_key = ("inexact", "auto", "decoupled")
             ref = _triple(results[ref_key])
             for row in rows[first:]:
                 key = (row["method"], row["nested"], row["path"])
@@ -207,6 +217,8 @@ def _finish_row(row, n, name, mesh, unit, unit_info):
     row.update(n=n, scene=name, vertices=mesh.n_vertices, poisson_s=unit)
     row["poisson_iterations"] = unit_info["iterations"]
     row["poisson_units"] = row["seconds"] / unit
+    # the first solve of this scene in the process (kernels warmed up on a tiny mesh)
+    row["first_poisson_units"] = row["seconds_stats"]["all"][0] / unit
     row["peak_rss_mb"] = peak_rss_mb()
     err = f" err {row['energy_error']:.3e}" if "energy_error" in row else ""
     progress(
@@ -238,6 +250,11 @@ def main(argv=None):
     p.add_argument("--plain-max", type=int, default=512)
     p.add_argument("--naive-max", type=int, default=256)
     p.add_argument("--naive-budget", type=float, default=120.0)
+    p.add_argument(
+        "--only-inexact",
+        action="store_true",
+        help="only the default solve (inexact, nested, decoupled); writes contact_pu.json",
+    )
     args = parse(p, argv)
     sizes = args.sizes or (QUICK_SIZES if args.quick else FULL_SIZES)
     if args.quick and args.repeat == p.get_default("repeat"):
@@ -253,11 +270,12 @@ def main(argv=None):
             "plain_max": args.plain_max,
             "naive_max": args.naive_max,
             "naive_budget_s": args.naive_budget,
+            "only_inexact": args.only_inexact,
             "quick": args.quick,
         },
         "rows": run(sizes, args),
     }
-    finish("contact_solve", payload, args.quick)
+    finish("contact_pu" if args.only_inexact else "contact_solve", payload, args.quick)
 
 
 if __name__ == "__main__":

@@ -117,6 +117,7 @@ def test_contact_solve_checks(quick):
     assert ("naive", "coupled") in methods
     for r in rows:
         assert r["poisson_units"] > 0
+        assert r["first_poisson_units"] > 0  # the first solve in the process, beside the median
         assert "max_abs_diff_u_vs_reference" in r
     for r in rows:
         if r["method"] in ("exact", "exact-amg", "naive"):
