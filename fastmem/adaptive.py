@@ -100,18 +100,20 @@ def _rss_bytes():
         return 0
 
 
-def memory_pressure(mesh, fraction=None) -> bool:
+def memory_pressure(mesh, fraction=None, limit=None) -> bool:
     """Return True when a solve on ``mesh`` may come close to the memory the process can use.
 
     The memory guard's estimate of the peak (method ``"inexact"`` with the bound)
     against ``fraction`` (default :data:`SPILL_FRACTION`) of the smaller of the
-    guard's limit (:func:`fastmem.options.memory_limit`: ``FASTMEM_MEMORY_LIMIT`` or
-    the machine's memory) and what the process could still reach (its resident
-    memory plus the system's ``MemAvailable``; Linux only, ignored elsewhere).
+    guard's limit (:func:`fastmem.options.memory_limit` of ``limit``: the
+    ``memory_limit`` of :func:`fastmem.solve`, else ``FASTMEM_MEMORY_LIMIT`` or the
+    machine's memory; ``False`` disables it) and what the process could still reach
+    (its resident memory plus the system's ``MemAvailable``; Linux only, ignored
+    elsewhere).
     """
     fraction = SPILL_FRACTION if fraction is None else fraction
     need = estimate_memory(mesh.n_vertices, mesh.n_triangles, "inexact", True)
-    room = [memory_limit()[0]]
+    room = [memory_limit(limit)[0]]
     avail = _meminfo_bytes("MemAvailable")
     if avail is not None:
         room.append(avail + _rss_bytes())
@@ -119,9 +121,9 @@ def memory_pressure(mesh, fraction=None) -> bool:
     return bool(room) and need > fraction * min(room)
 
 
-def _wants_spill(mesh) -> bool:
+def _wants_spill(mesh, limit=None) -> bool:
     if SPILL == "auto":
-        return memory_pressure(mesh)
+        return memory_pressure(mesh, limit=limit)
     return bool(SPILL)
 
 
@@ -140,7 +142,7 @@ class AdaptiveStep(AMGStep):
         if self.decoupled:  # the share of s in eta_alg steers its CG
             self.mass = _mass_matrix(system.scene)
             self.c_f = friedrichs_constant(system.scene.mesh)
-        self.spilling = _wants_spill(system.scene.mesh)
+        self.spilling = _wants_spill(system.scene.mesh, options.memory_limit)
         self.stats["spill"] = self.spilling
 
     def spill(self):

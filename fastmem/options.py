@@ -149,8 +149,15 @@ class InnerOptions(_Frozen):
     check_every: int = 1
     amg_reuse: float = 0.05
     amg_options: MappingProxyType = field(default=None)
+    #: The memory limit of :func:`fastmem.solve` (None, False or bytes, as there): the
+    #: memory the inexact step's spilling decision (:func:`fastmem.adaptive.memory_pressure`)
+    #: measures its estimate against, like the guard before the solve.
+    memory_limit: object = None
 
     def _check(self, name, value):
+        if name == "memory_limit":
+            memory_limit(value)  # a bad value is refused here, naming memory_limit
+            return value
         if name in ("max_inner", "check_every"):
             return _number(name, value, integer=True)
         if name == "gamma_alg":

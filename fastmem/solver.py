@@ -212,6 +212,7 @@ def solve(
         check_every=check_every,
         amg_reuse=amg_reuse,
         amg_options=amg_options,
+        memory_limit=memory_limit,
         monitor=monitor,
         full_history=full_history,
         keep_iterates=keep_iterates,

@@ -113,3 +113,28 @@ def test_memory_pressure_compares_the_guard_estimate_with_the_memory_at_hand(mon
     assert adaptive.memory_pressure(mesh)
     monkeypatch.setattr(adaptive, "_meminfo_bytes", lambda key: None)
     assert not adaptive.memory_pressure(mesh)  # nothing known: no pressure
+
+
+def test_solve_memory_limit_reaches_the_spill_decision(monkeypatch):
+    """``fm.solve(..., memory_limit=...)`` steers spilling like FASTMEM_MEMORY_LIMIT.
+
+    A limit between the guard's estimate and twice it is accepted by the guard and
+    makes the inexact step spill (estimate above SPILL_FRACTION = 1/2 of the limit);
+    the same solve with a generous limit keeps everything, and both give the same
+    triple (spilling changes no result).
+    """
+    scene = fm.Scene(fm.Mesh.square(32), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    mesh = scene.mesh
+    need = fm.options.estimate_memory(mesh.n_vertices, mesh.n_triangles, "inexact", True)
+    monkeypatch.delenv(fm.options.MEMORY_LIMIT_ENV, raising=False)
+    monkeypatch.setattr(adaptive, "_meminfo_bytes", lambda key: None)  # the limit alone
+    tight = fm.solve(scene, memory_limit=int(1.5 * need))
+    loose = fm.solve(scene, memory_limit=int(100 * need))
+    assert tight.parameters["solver"]["levels"][-1]["spill"]
+    assert not any(lv["spill"] for lv in loose.parameters["solver"]["levels"])
+    np.testing.assert_array_equal(tight.u1, loose.u1)
+    np.testing.assert_array_equal(tight.lam, loose.lam)
+    assert adaptive.memory_pressure(mesh, limit=int(1.5 * need))
+    assert not adaptive.memory_pressure(mesh, limit=False)  # no limit, nothing known
+    with pytest.raises(fm.errors.ParameterError, match="memory_limit"):
+        fm.solve(scene, memory_limit="lots")
