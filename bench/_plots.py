@@ -234,6 +234,16 @@ def plot_scaling(payload, path):
         p = ex.get(ph)
         label = ph if p is None else f"{ph} (N^{p:.2f})"
         ax.loglog(nv, [r["phases"][ph]["median"] for r in rows], "o-", label=label)
+    with_unit = [r for r in rows if "poisson_s" in r]
+    if with_unit:  # the unit of solver cost on the same meshes, beside the phases
+        p = ex.get("poisson_unit")
+        label = "Poisson unit" if p is None else f"Poisson unit (N^{p:.2f})"
+        ax.loglog(
+            [r["vertices"] for r in with_unit],
+            [r["poisson_s"] for r in with_unit],
+            "k--",
+            label=label,
+        )
     tops = [max(r["phases"][ph]["median"] for ph in phases) for r in rows[:1]]
     _reference_line(ax, nv, tops)
     ax.set_xlabel("vertices N")

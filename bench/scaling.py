@@ -19,7 +19,11 @@ fewer when one pipeline takes longer than ``--budget`` seconds; the JIT caches
 are loaded by a pipeline on a tiny mesh first.  The growth exponent p of
 each phase, time ~ N^p in the number of vertices N, is fitted by least
 squares on log-log over the sizes with N >= 1e4 (all sizes with --quick), and
-so is the peak resident memory (``VmHWM`` of the size's worker).
+so is the peak resident memory (``VmHWM`` of the size's worker, read before the
+Poisson unit).  After the pipeline the worker also measures the Poisson unit on
+the same mesh (:func:`bench._common.poisson_unit`, one repetition from n = 2048):
+each row has ``poisson_s`` and ``solve_poisson_units``, and the figure draws the
+unit beside the phases.
 
 ``--merge`` keeps the rows of the other sizes already in the result file (same
 method) and fits the exponents over all of them: a size too big to share an
@@ -44,6 +48,7 @@ from bench._common import (
     parse,
     parser,
     peak_rss_mb,
+    poisson_unit,
     progress,
     run_worker,
     summary,
@@ -123,8 +128,12 @@ def measure(n, method, repeat, budget):
                 break
     import fastmem as fm
 
+    peak = peak_rss_mb()  # the pipeline's peak, before the Poisson unit's matrices
     mesh = fm.Mesh.square(n)
     phases = {ph: summary(v) for ph, v in per_phase.items()}
+    # the unit of solver cost on the same mesh, after the pipeline (not in its peak); one
+    # repetition where one takes long
+    unit = poisson_unit(mesh, repeat=1 if n >= 2048 else repeat)
     total = [sum(per_phase[ph][i] for ph in PHASES) for i in range(len(per_phase["mesh"]))]
     return {
         "n": n,
@@ -135,8 +144,11 @@ def measure(n, method, repeat, budget):
         "total_s": summary(total),
         "repetitions": len(total),
         **info,
+        "poisson_s": unit["seconds"],
+        "poisson": unit,
+        "solve_poisson_units": phases["solve"]["median"] / unit["seconds"],
         "rss_before_mb": rss0,
-        "peak_rss_mb": peak_rss_mb(),
+        "peak_rss_mb": peak,
     }
 
 
@@ -148,6 +160,8 @@ def exponents(rows, min_vertices):
     out = {ph: fit_exponent(nv, [r["phases"][ph]["median"] for r in use]) for ph in PHASES}
     out["total"] = fit_exponent(nv, [r["total_s"]["median"] for r in use])
     out["peak_rss_mb"] = fit_exponent(nv, [r["peak_rss_mb"] for r in use])
+    if all("poisson_s" in r for r in use):  # rows kept by --merge from before may lack it
+        out["poisson_unit"] = fit_exponent(nv, [r["poisson_s"] for r in use])
     out["sizes_used"] = [r["n"] for r in use]
     out["min_vertices"] = min_vertices
     return out
@@ -202,6 +216,7 @@ def main(argv=None):
             f"scaling: n = {n:5d} ({row['vertices']} vertices) "
             + " ".join(f"{k} {ph[k]['median']:.3f}s" for k in PHASES)
             + f" peak {row['peak_rss_mb']:.0f} MB ({row['repetitions']} reps)"
+            + f" Poisson unit {row['poisson_s']:.3f}s (solve {row['solve_poisson_units']:.2f} PU)"
         )
     kept = _kept_rows(args, sizes) if args.merge else []
     rows = sorted(kept + rows, key=lambda r: r["n"])

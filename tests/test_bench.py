@@ -170,8 +170,14 @@ def test_scaling_phases(quick):
         assert set(d["phases"]) <= set(r["phases"])
         assert r["archive_roundtrip_max_diff"] == 0.0
         assert r["peak_rss_mb"] > 0
+        # the Poisson unit measured on the same mesh, the solve expressed in it
+        assert r["poisson_s"] > 0
+        assert r["solve_poisson_units"] == pytest.approx(
+            r["phases"]["solve"]["median"] / r["poisson_s"]
+        )
     for ph in d["phases"]:
         assert d["exponents"][ph] is not None
+    assert d["exponents"]["poisson_unit"] is not None
 
 
 def test_threads_results_identical(quick):
