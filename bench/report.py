@@ -197,6 +197,23 @@ def _contact_table(rows):
     return "\n".join(lines) if len(lines) > 2 else None
 
 
+def _contact_pu(d, v):
+    """``contact_pu.json`` (``bench.contact_solve --only-inexact``): the default solve in PU."""
+    rows = d["rows"]
+    lines = [
+        "| n | scene | first solve (PU) | median (PU) | Newton steps (finest) | CG its | eta |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(rows, key=lambda r: (r["n"], r["scene"])):
+        lines.append(
+            f"| {r['n']} | {r['scene']} | {r['first_poisson_units']:.2f} | "
+            f"{r['poisson_units']:.2f} | {r['newton_total']} ({r['newton_finest']}) | "
+            f"{r['inner_total']} | {r['eta']:.3e} |"
+        )
+    v["contact_pu_table"] = "\n".join(lines)
+    v["contact_pu_date"] = d.get("machine", {}).get("date", "")[:10]
+
+
 def _estimate(d, v):
     big = max(d["rows"], key=lambda r: r["n"])
     v["estimate_n"] = big["n"]
@@ -396,6 +413,7 @@ _EXTRACT = {
     "poisson_unit": _poisson,
     "exact_solve": _exact_solve,
     "contact_solve": _contact,
+    "contact_pu": _contact_pu,
     "estimate": _estimate,
     "work_precision": _work_precision,
     "scaling": _scaling,
