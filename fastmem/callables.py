@@ -9,9 +9,12 @@ dependency goes one way: loaddata -> assembly -> callables).
 
 from __future__ import annotations
 
+import concurrent.futures
+
 import numpy as np
 
 from .errors import DataError
+from .kernels import _par
 from .kernels import assembly as _k
 from .quadrature import quadrature_points, triangle_rule
 
@@ -67,6 +70,13 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
     and ``"osc_norm"`` (M,), the norms ``||f - Pi_K f||_K`` of the oscillation.
     The single implementation behind :func:`fastmem.assembly.assemble_load`
     (callables) and :func:`fastmem.loaddata.integrals`.
+
+    With more than one thread (:func:`fastmem.set_threads`) the integrals of a
+    block are formed in a pool thread while the calling thread maps the next
+    block's points and evaluates ``f`` there (``f`` itself is only ever called
+    from the calling thread, so it need not be thread-safe).  At most one block
+    waits: the temporaries stay bounded by two blocks, and every number is
+    computed by the same operations as in one thread (bit-identical results).
     """
     m = mesh.n_triangles
     bary, w = triangle_rule(degree)
@@ -74,10 +84,8 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
     if want_all:
         mom = np.empty((m, 3, 3))
         norm = np.empty(m)  # ||f - Pi_K f||_K
-    for start in range(0, m, BLOCK):
-        stop = min(start + BLOCK, m)
-        x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
-        fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
+
+    def integrate(fv, start, stop):
         fw = fv * w
         avg = fw @ bary  # (m_b, 3): (f, phi_j)_K / |K|
         areas = mesh.areas[start:stop]
@@ -94,6 +102,26 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
             coef = 12.0 * avg_s - 3.0 * avg_s.sum(axis=1, keepdims=True)
             diff = fv / scale[:, None] - coef @ bary.T
             norm[start:stop] = scale * np.sqrt(((diff * diff) @ w) * areas)
+
+    pool = _par.worker_pool() if m > BLOCK and _par.n_threads() > 1 else None
+    pending = None
+    try:
+        for start in range(0, m, BLOCK):
+            stop = min(start + BLOCK, m)
+            x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
+            fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
+            del x, y
+            if pool is None:
+                integrate(fv, start, stop)
+                continue
+            if pending is not None:
+                pending.result()  # the previous block first: at most one block in flight
+            pending = pool.submit(integrate, fv, start, stop)
+        if pending is not None:
+            pending.result()
+    finally:  # an error in the calling thread: let the pool thread finish its block first
+        if pending is not None:
+            concurrent.futures.wait([pending])
     vec = _k.gather_vector(local, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local)
     out = {"F": vec}
     if want_all:

@@ -24,7 +24,7 @@ import threading
 
 import numba
 
-__all__ = ["GRAIN", "n_threads", "parallel_for", "ranges", "run_ranges"]
+__all__ = ["GRAIN", "n_threads", "parallel_for", "ranges", "run_ranges", "worker_pool"]
 
 #: fewest loop iterations per thread: shorter loops run in the calling thread
 #: (handing a chunk to a pool thread costs tens of microseconds)
@@ -58,6 +58,15 @@ def ranges(n: int, threads: int, grain: int) -> list:
     """
     k = max(1, min(int(threads), int(n) // max(1, int(grain))))
     return [(n * j // k, n * (j + 1) // k) for j in range(k)]
+
+
+def worker_pool():
+    """The shared pool (at least :func:`n_threads` threads), for work beside the caller's.
+
+    For NumPy work that releases the GIL (:func:`fastmem.callables.callable_integrals`
+    forms a block's integrals there while the caller evaluates the next block).
+    """
+    return _pool(n_threads())
 
 
 def _pool(size: int):

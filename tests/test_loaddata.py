@@ -167,3 +167,35 @@ def test_exact_solve_without_estimate_builds_no_moments():
     scene = fm.Scene(mesh, f=(-1.0, f), g=0.1)
     fm.solve(scene, method="exact", estimate=False)
     assert "moments" not in scene._cache["load_integrals2"]
+
+
+def test_blocks_integrated_beside_the_evaluation_give_the_same_bits(monkeypatch):
+    """Two threads (integrals of a block in a pool thread) and one thread agree bit for bit.
+
+    The callable is only ever called from the calling thread (user callables need not
+    be thread-safe).
+    """
+    import threading
+
+    import numba
+
+    monkeypatch.setattr(callables, "BLOCK", 37)
+    mesh = perturbed_square(12, 0.3)
+    caller = threading.get_ident()
+    threads_seen = set()
+
+    def f(x, y):
+        threads_seen.add(threading.get_ident())
+        return np.sin(3.0 * x) * np.exp(y) + x * y
+
+    before = numba.get_num_threads()
+    out = {}
+    try:
+        for k in (1, 2):
+            fm.set_threads(numba=min(k, numba.config.NUMBA_NUM_THREADS))
+            out[k] = callables.callable_integrals(mesh, f, 5, want_all=True)
+    finally:
+        fm.set_threads(numba=before)
+    assert threads_seen == {caller}
+    for key in ("F", "moments", "osc_norm"):
+        np.testing.assert_array_equal(out[1][key].view(np.uint64), out[2][key].view(np.uint64))
