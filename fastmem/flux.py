@@ -779,8 +779,10 @@ class _Glued:
         if self.callable:
             self.nodes = (m1 * self.f2 - m2 * self.f1) / (m1 + m2)  # (S, nq) point values
         else:
+            # constant and per-vertex loads are evaluated without the coordinates
+            # (only their shape is used), so the corners are not computed
             corners = np.eye(3)
-            xc, yc = quadrature_points(mesh.vertices, t, corners)
+            xc = yc = np.empty((tri.size, 3))
             g1 = _load_values(scene, 1, tri, xc, yc, corners)
             g2 = _load_values(scene, 2, tri, xc, yc, corners)
             self.nodes = (m1 * g2 - m2 * g1) / (m1 + m2)  # (S, 3) vertex values
@@ -1049,7 +1051,8 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
     # ell = chi + lam^- at the vertices (P1 pressure) and at the points: >= 0 by construction
     ell = []
     if not gl.callable:
-        ell.append(s_loc * gl._shifted(shift)[:, [0, 1, 2], [0, 1, 2]] + plain + lam_minus[tri])
+        own = np.maximum(gl.nodes + shift * gl.m[:, None], 0.0)  # _shifted(shift)[:, i, i]
+        ell.append(s_loc * own + plain + lam_minus[tri])
     osc1 = np.zeros(sub.size)
     osc2 = np.zeros(sub.size)
     if gl.with_points:
