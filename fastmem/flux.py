@@ -36,6 +36,7 @@ guaranteed up to the quadrature error of these data integrals.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass
 
@@ -722,6 +723,26 @@ _T3 = np.array(
 )
 
 
+def _any3(b):
+    """Row-wise any of a bool (S, 3) array.
+
+    Column by column: ``.any(axis=1)`` on rows of three is several times slower
+    (and the glued contact load runs on every evaluation of the bound).
+    """
+    return b[:, 0] | b[:, 1] | b[:, 2]
+
+
+def _sum3(v):
+    """``v.sum(axis=-1)`` for a last axis of length 3, in the same order (bit for bit)."""
+    return v[..., 0] + v[..., 1] + v[..., 2]
+
+
+def _moments_p1(v):
+    """``einsum("sik,ikj->sij", v, _T3)`` (the same products, summed in order over k)."""
+    t = _T3
+    return v[:, :, 0, None] * t[:, 0] + v[:, :, 1, None] * t[:, 1] + v[:, :, 2, None] * t[:, 2]
+
+
 class _Glued:
     r"""The glued pressure :math:`\zeta \ge 0` on a set of triangles, shifted per vertex.
 
@@ -758,8 +779,10 @@ class _Glued:
         if self.callable:
             self.nodes = (m1 * self.f2 - m2 * self.f1) / (m1 + m2)  # (S, nq) point values
         else:
+            # constant and per-vertex loads are evaluated without the coordinates
+            # (only their shape is used), so the corners are not computed
             corners = np.eye(3)
-            xc, yc = quadrature_points(mesh.vertices, t, corners)
+            xc = yc = np.empty((tri.size, 3))
             g1 = _load_values(scene, 1, tri, xc, yc, corners)
             g2 = _load_values(scene, 2, tri, xc, yc, corners)
             self.nodes = (m1 * g2 - m2 * g1) / (m1 + m2)  # (S, 3) vertex values
@@ -792,7 +815,7 @@ class _Glued:
             return out * self.areas[:, None]
         # int_K lambda_i lambda_k = |K| (1 + [i = k]) / 12
         own = v[:, [0, 1, 2], [0, 1, 2]]
-        return (v.sum(axis=2) + own) * (self.areas / 12.0)[:, None]
+        return (_sum3(v) + own) * (self.areas / 12.0)[:, None]
 
     def moments(self, shift):
         """``(psi_i zeta_i, lambda_j)_K``: (S, 3, 3)."""
@@ -801,7 +824,7 @@ class _Glued:
             b, w = self.bary, self.w
             out = np.stack([v[:, i, :] @ ((w * b[:, i])[:, None] * b) for i in range(3)], axis=1)
             return out * self.areas[:, None, None]
-        return np.einsum("sik,ikj->sij", v, _T3) * self.areas[:, None, None]
+        return _moments_p1(v) * self.areas[:, None, None]
 
 
 def _keep_plain(scene, u1, u2, lam, closed, partial, mu1, mu2) -> np.ndarray:
@@ -826,7 +849,7 @@ def _keep_plain(scene, u1, u2, lam, closed, partial, mu1, mu2) -> np.ndarray:
     mesh = scene.mesh
     n = mesh.n_vertices
     triangles = mesh.triangles
-    osub = np.flatnonzero(~closed & partial[triangles].any(axis=1))
+    osub = np.flatnonzero(~closed & _any3(partial[triangles]))
     ot = triangles[osub]
     areas = mesh.areas[osub]
     grads = mesh.gradients[osub]  # (S, 3, 2)
@@ -970,7 +993,8 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
     u1 = np.asarray(u1, dtype=np.float64)
     u2 = np.asarray(u2, dtype=np.float64)
     gap = u1 - u2
-    closed = (gap[triangles] <= 0.0).all(axis=1)
+    closed = gap[triangles] <= 0.0
+    closed = closed[:, 0] & closed[:, 1] & closed[:, 2]
     flags = unequal & (lam > 0.0) & ~mesh.boundary_vertex_mask
     flags &= np.bincount(triangles[closed].ravel(), minlength=n) > 0
     partial = flags & (np.bincount(triangles[~closed].ravel(), minlength=n) > 0)
@@ -978,7 +1002,7 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
         flags &= ~_keep_plain(scene, u1, u2, lam, closed, partial, mu1, mu2)
     if not flags.any():
         return None
-    sub = np.flatnonzero(closed & flags[triangles].any(axis=1))
+    sub = np.flatnonzero(closed & _any3(flags[triangles]))
     tri = triangles[sub]
     gl = _Glued(scene, sub, mu1[sub], mu2[sub])
     target = mesh.lumped_mass * lam
@@ -987,15 +1011,16 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
     wsum = np.bincount(tri.ravel(), weights=np.repeat(gl.m * gl.areas / 3.0, 3), minlength=n)
     gamma = np.where(flags, (target - d0) / np.where(wsum > 0.0, wsum, 1.0), 0.0)
     # clipped somewhere on the patch?  then the mass is not linear in gamma: bisection
-    low = gl.nodes.min(axis=1)  # smallest value of chi* per triangle (points or vertices)
+    # smallest value of chi* per triangle (points or vertices)
+    low = functools.reduce(np.minimum, gl.nodes.T)
     clip_k = low[:, None] + gamma[tri] * gl.m[:, None] < 0.0  # (S, 3)
     clip = np.zeros(n, dtype=bool)
     clip[tri[clip_k]] = True
     clip &= flags
     if clip.any():
-        rows = np.flatnonzero(clip[tri].any(axis=1))
+        rows = np.flatnonzero(_any3(clip[tri]))
         rt = tri[rows]
-        high = gl.nodes.max(axis=1)[rows]
+        high = functools.reduce(np.maximum, gl.nodes[rows].T)
         # all of the patch clipped (mass 0) at gamma = -max chi*/m_K: a bracket
         lo = np.full(n, np.inf)
         np.minimum.at(lo, rt.ravel(), np.repeat(-np.maximum(high, 0.0) / gl.m[rows], 3))
@@ -1011,11 +1036,11 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
         gamma = np.where(clip, hi, gamma)  # mass >= target: the rescaling below is <= 1
     shift = np.where(flags[tri], gamma[tri], 0.0)
     mom = gl.moments(shift)
-    d = np.bincount(tri.ravel(), weights=mom.sum(axis=2).ravel(), minlength=n)
+    d = np.bincount(tri.ravel(), weights=_sum3(mom).ravel(), minlength=n)
     flags &= d > 0.0
     scale = np.zeros(n)
     scale[flags] = target[flags] / d[flags]
-    keep = flags[tri].any(axis=1)
+    keep = _any3(flags[tri])
     sub, tri, mom, shift = sub[keep], tri[keep], mom[keep], shift[keep]
     s_loc = np.where(flags[tri], scale[tri], 0.0)  # (S, 3)
     moments = s_loc[:, :, None] * mom
@@ -1026,7 +1051,8 @@ def glued_contact_load(scene, u1, u2, lam) -> ContactLoad | None:
     # ell = chi + lam^- at the vertices (P1 pressure) and at the points: >= 0 by construction
     ell = []
     if not gl.callable:
-        ell.append(s_loc * gl._shifted(shift)[:, [0, 1, 2], [0, 1, 2]] + plain + lam_minus[tri])
+        own = np.maximum(gl.nodes + shift * gl.m[:, None], 0.0)  # _shifted(shift)[:, i, i]
+        ell.append(s_loc * own + plain + lam_minus[tri])
     osc1 = np.zeros(sub.size)
     osc2 = np.zeros(sub.size)
     if gl.with_points:

