@@ -10,6 +10,7 @@ method, so that the caller decides when to stop.
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 import time
 
@@ -157,13 +158,30 @@ def _checked_sum_duplicates(self):
     return _BSR_ORIGINAL(self)
 
 
+def _reset_after_fork():
+    # a fork during another thread's setup: the child has no setup running, and the lock
+    # may have been held at the fork
+    global _BSR_LOCK, _BSR_DEPTH, _BSR_ORIGINAL
+    _BSR_LOCK = threading.Lock()
+    if _BSR_DEPTH:
+        from scipy.sparse._bsr import _bsr_base
+
+        _bsr_base.sum_duplicates = _BSR_ORIGINAL
+    _BSR_DEPTH = 0
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_reset_after_fork)
+
+
 @contextlib.contextmanager
 def _fast_bsr_dedup():
     """Within the block, BSR ``sum_duplicates`` skips canonical matrices without a loop.
 
     Same result as scipy's method (which changes nothing on a canonical matrix);
     installed on scipy's BSR base class only while a hierarchy is set up (nested and
-    concurrent setups share one installation), and only where scipy has that class.
+    concurrent setups share one installation, which every thread of the process sees
+    meanwhile: harmless, it is equivalent), and only where scipy has that class.
     """
     global _BSR_DEPTH, _BSR_ORIGINAL
     try:

@@ -104,6 +104,13 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
             norm[start:stop] = scale * np.sqrt(((diff * diff) @ w) * areas)
 
     pool = _par.worker_pool() if m > BLOCK and _par.n_threads() > 1 else None
+    if pool is not None:  # NumPy's error settings are per thread: the caller's apply there too
+        errors, plain = np.geterr(), integrate
+
+        def integrate(fv, start, stop):
+            with np.errstate(**errors):
+                plain(fv, start, stop)
+
     pending = None
     try:
         for start in range(0, m, BLOCK):

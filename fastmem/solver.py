@@ -173,7 +173,9 @@ def solve(
         if set (bytes, or with a K/M/G/T suffix; 0, off or none disable the check),
         else the machine's physical memory (or its cgroup limit).  A number (bytes)
         or a string like ``"40G"`` sets it; ``False`` or 0 disables the check.  With
-        ``tol``/``rtol`` only the initial mesh is checked.
+        ``tol``/``rtol`` only the initial mesh is checked.  The same limit decides when
+        the inexact step frees its matrices during flux reconstructions (spilling,
+        :func:`fastmem.adaptive.memory_pressure`; results are identical either way).
 
     Returns
     -------

@@ -36,7 +36,8 @@ _POOL_SIZE = 0
 
 
 def _forget_pool():
-    global _POOL, _POOL_SIZE
+    global _LOCK, _POOL, _POOL_SIZE
+    _LOCK = threading.Lock()  # a fork while another thread held it would leave it held
     _POOL = None
     _POOL_SIZE = 0
 
@@ -70,11 +71,16 @@ def worker_pool():
 
 
 def _pool(size: int):
+    # Sized once for the most threads Numba allows (``set_threads`` cannot go beyond
+    # NUMBA_NUM_THREADS; the executor starts its threads only when work needs them), so
+    # the pool never grows: replacing it would shut down a pool that another thread (a
+    # pipelined callable pass, a run_ranges in another thread) is about to submit to.
     global _POOL, _POOL_SIZE
     with _LOCK:
         if _POOL is None or _POOL_SIZE < size:
-            if _POOL is not None:
+            if _POOL is not None:  # only when asked beyond NUMBA_NUM_THREADS
                 _POOL.shutdown(wait=False)
+            size = max(int(size), int(numba.config.NUMBA_NUM_THREADS))
             _POOL = concurrent.futures.ThreadPoolExecutor(
                 max_workers=size, thread_name_prefix="fastmem-kernel"
             )

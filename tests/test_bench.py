@@ -208,6 +208,29 @@ def test_report_and_figures(quick, results):
         assert list(results.glob("*_quick.png"))
 
 
+def test_contact_solve_only_inexact_and_its_report_table(tmp_path):
+    """``--only-inexact`` (the issue-15 figure): the default solve alone, in contact_pu."""
+    res = _run(["bench.contact_solve", "--quick", "--only-inexact"], tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert not (tmp_path / "contact_solve_quick.json").exists()
+    d = json.loads((tmp_path / "contact_pu_quick.json").read_text())
+    assert d["parameters"]["only_inexact"] is True
+    assert {(r["method"], r["nested"], r["path"]) for r in d["rows"]} == {
+        ("inexact", "auto", "decoupled")
+    }
+    assert {r["scene"] for r in d["rows"]} == {"default", "manufactured"}
+    for r in d["rows"]:
+        assert r["first_poisson_units"] > 0 and r["poisson_units"] > 0
+        assert "max_abs_diff_u_vs_reference" not in r  # nothing to compare with
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    from bench import report
+
+    table = report.values(quick=True, folder=tmp_path)["contact_pu_table"]
+    assert table.count("\n") == len(d["rows"]) + 1  # header, rule, one line per row
+    assert "| manufactured |" in table
+
+
 def test_main_runs_one_benchmark(tmp_path):
     res = _run(["bench", "--quick", "--only", "exact_solve"], tmp_path)
     assert res.returncode == 0, res.stderr

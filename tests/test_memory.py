@@ -251,12 +251,17 @@ def test_fast_dedup_setup_builds_the_same_hierarchy(monkeypatch):
     from fastmem.steps import gap_matrix
 
     original = bsr_module._bsr_base.sum_duplicates
-    checked = amg._checked_sum_duplicates
-    calls = []
+    checked, is_canonical = amg._checked_sum_duplicates, amg._bsr_is_canonical
+    calls, flagged = [], []
 
     def counting(self):
         calls.append(self.shape)
         return checked(self)
+
+    def counting_check(m):
+        ok = is_canonical(m)
+        flagged.append(ok)
+        return ok
 
     st = DecoupledStep(fm.Scene(fm.Mesh.square(96), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
     active = np.random.default_rng(4).random(st.a_ii.shape[0]) < 0.3
@@ -264,11 +269,13 @@ def test_fast_dedup_setup_builds_the_same_hierarchy(monkeypatch):
         with monkeypatch.context() as m:
             m.setattr(amg, "_trim", lambda ml: None)
             m.setattr(amg, "_checked_sum_duplicates", counting)
+            m.setattr(amg, "_bsr_is_canonical", counting_check)
             fast = amg.amg_preconditioner(mat)
             assert bsr_module._bsr_base.sum_duplicates is original  # removed after the setup
             m.setattr(amg, "_fast_bsr_dedup", contextlib.nullcontext)
             plain = amg.amg_preconditioner(mat)
         assert calls, "the setup never reached sum_duplicates: the test checks nothing"
+        assert any(flagged), "no Galerkin product was found canonical: the loop still runs"
         for a, b in zip(fast.ml.levels, plain.ml.levels, strict=True):
             for name in ("A", "P", "R"):
                 x, y = getattr(a, name, None), getattr(b, name, None)
