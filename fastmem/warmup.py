@@ -109,7 +109,7 @@ def kernels_cached(which: str = "pipeline") -> bool | None:
             kernels = [
                 flux._reconstruct_chunk,
                 assembly._stiffness_csr_range,
-                topology.edge_topology,
+                topology._number_edges,
             ]
         return all(_cached(d) for d in kernels)
     except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
@@ -129,10 +129,24 @@ def _cpus() -> int:
 
 #: Python code the helper process runs (a module run with -m would be imported twice)
 #: (the coefficient pass first: meanwhile the caller compiles the two largest
-#: callees of the patch kernel, which the helper then finds in the cache)
-_HELPER_CODE = (
-    "from fastmem.kernels import flux; flux.precompile('coefficients'); flux.precompile('patches')"
+#: callees of the patch kernel, which the helper then finds in the cache).  It
+#: imports ``fastmem.kernels`` (numpy and numba only) without running
+#: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
+#: the helper does not need; argv: the folders of ``fastmem`` and of its kernels.
+_HELPER_CODE = """
+import importlib.util, sys, types
+package = types.ModuleType("fastmem")
+package.__path__ = [sys.argv[1]]
+sys.modules["fastmem"] = package
+spec = importlib.util.spec_from_file_location(
+    "fastmem.kernels", sys.argv[2] + "/__init__.py", submodule_search_locations=[sys.argv[2]]
 )
+package.kernels = sys.modules["fastmem.kernels"] = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(package.kernels)
+from fastmem.kernels import flux
+flux.precompile("coefficients")
+flux.precompile("patches")
+"""
 
 
 _helper = None
@@ -157,8 +171,11 @@ def start_compile_helper() -> bool:
     try:
         if _cpus() < 2 or _cached(flux._reconstruct_chunk):
             return False
+        from . import kernels
+
+        folders = [os.path.dirname(os.path.abspath(f)) for f in (__file__, kernels.__file__)]
         _helper = subprocess.Popen(
-            [sys.executable, "-c", _HELPER_CODE],
+            [sys.executable, "-c", _HELPER_CODE, *folders],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
@@ -261,10 +278,12 @@ def warm_up(
     helper = _take_helper() if uses_flux and start_compile_helper() else None
     if helper is not None:
         _kflux.compile_gate = lambda: _join_helper(helper)
-        # meanwhile: the flux kernels the helper does not compile and the point
-        # location of the nested iteration (otherwise compiled after the wait)
+        # meanwhile: the flux kernels the helper does not compile and, for a mesh
+        # without a coarser version, the point location of its auxiliary coarse
+        # mesh (otherwise compiled after the wait; nested structured meshes need none)
         _kflux.precompile("estimators")
-        _precompile_locate()
+        if unstructured:
+            _precompile_locate()
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:
