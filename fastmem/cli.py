@@ -511,6 +511,24 @@ def main(argv=None) -> int:
         hint = " (command line: --memory-limit)" if isinstance(exc, MemoryLimitError) else ""
         sys.stderr.write(f"fastmem: error: {exc}{hint}\n")
         return 2
+    finally:
+        if argv is None:  # the program (console script, python -m fastmem) exits next
+            _skip_exit_collections()
+
+
+def _skip_exit_collections() -> None:
+    """Move every object to the garbage collector's permanent generation (:func:`gc.freeze`).
+
+    The interpreter's shutdown runs full collections over every object alive,
+    and Numba's compiler leaves a great many: 0.35 s of the exit after a solve
+    (the whole first run is about 7 s), 0.03 s once they are frozen.  Only the
+    process's exit follows, which reclaims the memory anyway; files are closed
+    and flushed before (archives are written atomically, standard streams are
+    flushed at exit regardless).
+    """
+    import gc
+
+    gc.freeze()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -146,6 +146,8 @@ spec.loader.exec_module(package.kernels)
 from fastmem.kernels import flux
 flux.precompile("coefficients")
 flux.precompile("patches")
+import gc
+gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see fastmem.cli)
 """
 
 
