@@ -275,12 +275,12 @@ def _write_outputs(result, outputs) -> None:
 
 
 def _warm_up(args, method, mesh, adaptive) -> float:
-    """Compile or load the kernels first, saying so: the first run compiles for ~10 s."""
+    """Compile or load the kernels first, saying so: the first run compiles for ~7 s."""
     from .warmup import kernels_cached, warm_up
 
     cached = kernels_cached()
     if cached is False:
-        text = "  compiling Numba kernels (first run only, about 10 s) ..."
+        text = "  compiling Numba kernels (first run only, about 7 s) ..."
     else:
         text = "  loading compiled kernels ..."
     if not args.quiet:

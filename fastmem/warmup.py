@@ -1,7 +1,7 @@
 """Compile (or load from Numba's cache) the kernels a solve needs, before the solve.
 
 The first run of fastmem after an install compiles its Numba kernels (about
-10 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
+7 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
 in a fraction of a second.  :func:`warm_up` does that work on a tiny problem of
 the same kind, so that a caller (the ``fastmem run`` command, a benchmark) can
 say what is happening and time the solve apart from the compilation.
