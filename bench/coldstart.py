@@ -14,6 +14,9 @@ process:
   helper, measured in the same run);
 * ``warm``: the same command again, with the cache the first one filled;
 * ``import``: ``python -c "import fastmem"`` (the floor of any run);
+* for every run also its user + system CPU seconds (``RUSAGE_CHILDREN``: the
+  process and the helper it waited for), steadier than wall time on a shared
+  machine;
 * per kernel: the compile time of every kernel specialisation compiled by the
   cold run (Numba's ``numba:compile`` events; times of nested compilations are
   included in their caller's and listed as well).
@@ -29,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -40,15 +44,23 @@ COMMAND = ["-m", "fastmem", "run", "--no-save"]
 QUICK_COMMAND = [*COMMAND, "--n", "8"]
 
 
-def _timed(args, env) -> tuple[float, str]:
+def _cpu_children() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _timed(args, env) -> tuple[float, float, str]:
+    """Wall seconds, user+sys CPU seconds (the process and its waited-for helper), stdout."""
+    c0 = _cpu_children()
     t0 = time.perf_counter()
     res = subprocess.run(
         [sys.executable, *args], env=env, stdout=subprocess.PIPE, text=True, check=False
     )
     seconds = time.perf_counter() - t0
+    cpu = _cpu_children() - c0
     if res.returncode not in (0, 1):
         raise RuntimeError(f"{' '.join(args)} failed with exit code {res.returncode}")
-    return seconds, res.stdout
+    return seconds, cpu, res.stdout
 
 
 def compile_worker(quick: bool) -> dict:
@@ -93,34 +105,42 @@ def main(argv=None):
     repeat = 1 if args.quick else args.repeat
     command = QUICK_COMMAND if args.quick else COMMAND
     cold, cold_alone, warm, imports, outputs, rows = [], [], [], [], [], []
+    cold_cpu, cold_alone_cpu, warm_cpu = [], [], []
     for k in range(repeat):
         with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
             env = dict(os.environ) if args.quick else {**os.environ, "NUMBA_CACHE_DIR": cache}
-            t_cold, out = _timed(command, env)
-            t_warm, _ = _timed(command, env)
-            t_import, _ = _timed(["-c", "import fastmem"], env)
+            t_cold, c_cold, out = _timed(command, env)
+            t_warm, c_warm, _ = _timed(command, env)
+            t_import, _, _ = _timed(["-c", "import fastmem"], env)
         with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
             env = {**os.environ, "FASTMEM_COMPILE_HELPER": "0"}
             if not args.quick:
                 env["NUMBA_CACHE_DIR"] = cache
-            t_alone, _ = _timed(command, env)
+            t_alone, c_alone, _ = _timed(command, env)
         rows.append(
             {
                 "repetition": k,
                 "cold_s": t_cold,
+                "cold_cpu_s": c_cold,
                 "cold_no_helper_s": t_alone,
+                "cold_no_helper_cpu_s": c_alone,
                 "warm_s": t_warm,
+                "warm_cpu_s": c_warm,
                 "import_s": t_import,
             }
         )
         cold.append(t_cold)
+        cold_cpu.append(c_cold)
+        cold_alone_cpu.append(c_alone)
+        warm_cpu.append(c_warm)
         cold_alone.append(t_alone)
         warm.append(t_warm)
         imports.append(t_import)
         outputs.append(out)
         progress(
-            f"coldstart {k + 1}/{repeat}: cold {t_cold:.1f} s "
-            f"(without the helper {t_alone:.1f} s), warm {t_warm:.2f} s"
+            f"coldstart {k + 1}/{repeat}: cold {t_cold:.1f} s wall, {c_cold:.1f} s CPU "
+            f"(without the helper {t_alone:.1f} s, {c_alone:.1f} s CPU), "
+            f"warm {t_warm:.2f} s, {c_warm:.2f} s CPU"
         )
     with tempfile.TemporaryDirectory(prefix="fastmem-numba-cache-") as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache}
@@ -157,6 +177,9 @@ def main(argv=None):
         "import_seconds": imports,
         "cold": summary(cold),
         "cold_no_helper": summary(cold_alone),
+        "cold_cpu": summary(cold_cpu),
+        "cold_no_helper_cpu": summary(cold_alone_cpu),
+        "warm_cpu": summary(warm_cpu),
         "warm": summary(warm),
         "import": summary(imports),
         "first_output": outputs[0],

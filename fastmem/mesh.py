@@ -234,6 +234,7 @@ class Mesh:
         self._cache: dict = {}
         self._parent: Mesh | None = None
         self._coarse_recipe = None  # (generator name, args) of a coarser version, if any
+        self._grid = None  # (nx, ny, x0, x1, y0, y1): vertices on this grid (generators)
 
         # Repeated vertex inside one triangle.
         rep = (t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])
@@ -584,6 +585,7 @@ class Mesh:
         del a
         tris = tris.reshape(-1, 3)
         mesh = cls(vertices, tris, validate=False)
+        mesh._grid = (nx, ny, x0, x1, y0, y1)
         if nx % 2 == 0 and ny % 2 == 0 and min(nx, ny) >= 4:
             mesh._coarse_recipe = ("rectangle", (nx // 2, ny // 2, bounds, diagonal))
         return mesh
@@ -611,6 +613,7 @@ class Mesh:
         cen = sq.vertices[sq.triangles].mean(axis=1)
         keep = ~((cen[:, 0] > 0) & (cen[:, 1] < 0))
         mesh = cls._compact(sq.vertices, sq.triangles[keep], validate=False)
+        mesh._grid = sq._grid
         if n % 4 == 0 and n >= 8:
             mesh._coarse_recipe = ("lshape", (n // 2,))
         return mesh

@@ -6,7 +6,12 @@ A mesh has a coarser version when it came from :meth:`Mesh.refine` (its
 callables; nodal arrays move only to a parent (its vertices come first in
 the refined mesh) and per-triangle tensions to a parent as the mean over the
 four children.  Triples are transferred by P1 interpolation at the fine
-vertices, located in the coarse mesh with a bucket grid (Numba, O(N)).
+vertices.  Between two meshes of the structured generators (the coarse grid has
+half the cells of the fine one) and from a parent to its red refinement, every
+fine vertex is a coarse vertex or the midpoint of a coarse edge, so the weights
+are known from the indices alone (NumPy, O(N)); other pairs locate the fine
+vertices in the coarse mesh with a bucket grid (Numba, O(N)), whose kernels a
+structured run thus never compiles.
 """
 
 from __future__ import annotations
@@ -38,6 +43,9 @@ def interpolation_matrix(coarse, fine) -> sp.csr_matrix:
     candidate triangle of its bucket, or of the nearest coarse vertex when
     its bucket holds no triangle.
     """
+    mat = _nested_interpolation(coarse, fine)
+    if mat is not None:
+        return mat
     t = coarse.triangles
     tri, bary = locate(coarse, fine.vertices)
     if coarse._cache.get("auxiliary", False):
@@ -62,6 +70,93 @@ def interpolation_matrix(coarse, fine) -> sp.csr_matrix:
     )
     mat.eliminate_zeros()
     return mat
+
+
+def _grid_indices(points, grid) -> tuple[np.ndarray, np.ndarray]:
+    nx, ny, x0, x1, y0, y1 = grid
+    i = np.rint((points[:, 0] - x0) * (nx / (x1 - x0))).astype(np.int64)
+    j = np.rint((points[:, 1] - y0) * (ny / (y1 - y0))).astype(np.int64)
+    return i, j
+
+
+def _grid_columns(coarse, fine):
+    """The two coarse vertices of each fine vertex of a grid twice as fine, or None.
+
+    Returns ``(first, second)``, int64 (N_fine,): a fine vertex on a coarse vertex
+    has ``second = -1``; one on the midpoint of a coarse edge (a side of a cell, or
+    the diagonal of the cell it is the centre of) has its two end points.  None
+    when the meshes are not of one grid family or a vertex is missing.
+    """
+    gc, gf = coarse._grid, fine._grid
+    if gc is None or gf is None or gf != (2 * gc[0], 2 * gc[1], *gc[2:]):
+        return None
+    ncx, ncy = gc[0], gc[1]
+    ci, cj = _grid_indices(coarse.vertices, gc)
+    if ci.min() < 0 or cj.min() < 0 or ci.max() > ncx or cj.max() > ncy:
+        return None
+    vertex_at = np.full((ncy + 1) * (ncx + 1), -1, dtype=np.int64)
+    vertex_at[cj * (ncx + 1) + ci] = np.arange(coarse.n_vertices)
+    # each cell's diagonal, from its triangles: "slash" joins (i, j) and (i + 1, j + 1)
+    ti, tj = ci[coarse.triangles], cj[coarse.triangles]
+    i0, j0 = ti.min(axis=1), tj.min(axis=1)
+    cell = j0 * ncx + i0
+    has_low = ((ti == i0[:, None]) & (tj == j0[:, None])).any(axis=1)
+    has_high = ((ti == i0[:, None] + 1) & (tj == j0[:, None] + 1)).any(axis=1)
+    present = np.zeros(ncx * ncy, dtype=bool)
+    present[cell] = True
+    slash = np.zeros(ncx * ncy, dtype=bool)
+    slash[cell[has_low & has_high]] = True
+    i, j = _grid_indices(fine.vertices, gf)
+    hi, hj, oi, oj = i // 2, j // 2, i % 2, j % 2
+    centre = (oi == 1) & (oj == 1)
+    c = np.minimum(hj, ncy - 1) * ncx + np.minimum(hi, ncx - 1)
+    if not present[c[centre]].all():
+        return None
+    back = centre & ~slash[c]
+    # first end point (i, j) or, on a "back" diagonal, (i + 1, j); second one step on
+    a_i = hi + back
+    b_i = np.where(back, hi, hi + oi)
+    b_j = hj + oj
+    first = vertex_at[np.minimum(hj, ncy) * (ncx + 1) + np.minimum(a_i, ncx)]
+    second = vertex_at[np.minimum(b_j, ncy) * (ncx + 1) + np.minimum(b_i, ncx)]
+    second[(oi == 0) & (oj == 0)] = -1
+    if (first < 0).any() or ((second < 0) & ((oi == 1) | (oj == 1))).any():
+        return None
+    return first, second
+
+
+def _nested_interpolation(coarse, fine) -> sp.csr_matrix | None:
+    """Interpolation onto a nested fine mesh from the indices alone, or None.
+
+    A fine vertex is a coarse vertex (weight 1) or the midpoint of a coarse edge
+    (weights 1/2, 1/2): the red refinement of ``coarse`` (``fine.parent``, vertex
+    ``N + e`` on edge ``e``) and two meshes of a structured generator, one with
+    twice the cells of the other (:attr:`Mesh._grid`).  Checked against the
+    coordinates (None, and point location instead, if any vertex is off).
+    """
+    if fine.parent is coarse:
+        n = coarse.n_vertices
+        first = np.concatenate([np.arange(n), coarse.edges[:, 0]])
+        second = np.concatenate([np.full(n, -1), coarse.edges[:, 1]])
+        if first.size != fine.n_vertices:
+            return None
+    else:
+        cols = _grid_columns(coarse, fine)
+        if cols is None:
+            return None
+        first, second = cols
+    single = second < 0
+    w = np.where(single, 1.0, 0.5)
+    cv = coarse.vertices
+    x = w[:, None] * (cv[first] + np.where(single[:, None], 0.0, cv[np.maximum(second, 0)]))
+    if np.abs(x - fine.vertices).max(axis=1).max() > 1e-9 * coarse.diameters.min():
+        return None
+    two = ~single
+    rows = np.concatenate([np.arange(fine.n_vertices), np.flatnonzero(two)])
+    cols = np.concatenate([first, second[two]])
+    return sp.csr_matrix(
+        (np.concatenate([w, w[two]]), (rows, cols)), shape=(fine.n_vertices, coarse.n_vertices)
+    )
 
 
 def _transfer_mu(mu, fine, coarse, cmap):

@@ -1,7 +1,7 @@
 """Compile (or load from Numba's cache) the kernels a solve needs, before the solve.
 
 The first run of fastmem after an install compiles its Numba kernels (about
-10 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
+7 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
 in a fraction of a second.  :func:`warm_up` does that work on a tiny problem of
 the same kind, so that a caller (the ``fastmem run`` command, a benchmark) can
 say what is happening and time the solve apart from the compilation.
@@ -109,7 +109,7 @@ def kernels_cached(which: str = "pipeline") -> bool | None:
             kernels = [
                 flux._reconstruct_chunk,
                 assembly._stiffness_csr_range,
-                topology.edge_topology,
+                topology._number_edges,
             ]
         return all(_cached(d) for d in kernels)
     except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
@@ -129,10 +129,62 @@ def _cpus() -> int:
 
 #: Python code the helper process runs (a module run with -m would be imported twice)
 #: (the coefficient pass first: meanwhile the caller compiles the two largest
-#: callees of the patch kernel, which the helper then finds in the cache)
-_HELPER_CODE = (
-    "from fastmem.kernels import flux; flux.precompile('coefficients'); flux.precompile('patches')"
+#: callees of the patch kernel, which the helper then finds in the cache; should
+#: the patch kernel's typing reach them first, it waits for them, up to 5 s after
+#: the helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
+#: imports ``fastmem.kernels`` (numpy and numba only) without running
+#: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
+#: the helper does not need; argv: the folders of ``fastmem`` and of its kernels.
+_HELPER_CODE = """
+import importlib.util, sys, types
+package = types.ModuleType("fastmem")
+package.__path__ = [sys.argv[1]]
+sys.modules["fastmem"] = package
+spec = importlib.util.spec_from_file_location(
+    "fastmem.kernels", sys.argv[2] + "/__init__.py", submodule_search_locations=[sys.argv[2]]
 )
+package.kernels = sys.modules["fastmem.kernels"] = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(package.kernels)
+import os
+import time
+
+from fastmem.kernels import flux
+
+#: when the helper stops waiting for the caller's solvers (one deadline for both)
+deadline = time.monotonic() + 5.0
+
+
+def after_the_caller(dispatcher):
+    # The caller compiles these callees of the patch kernel into the cache meanwhile:
+    # when the patch kernel's typing reaches one before the caller has saved it (a
+    # loaded machine), wait for the caller's save instead of compiling it twice.
+    cache_file = dispatcher._cache._cache_file
+    compile_ = dispatcher.compile
+
+    def saved():
+        if not os.path.exists(cache_file._index_path):
+            return False
+        names = list(cache_file._load_index().values())
+        return bool(names) and all(os.path.exists(cache_file._data_path(n)) for n in names)
+
+    def compile(sig):
+        while time.monotonic() < deadline and not saved():
+            time.sleep(0.01)
+        return compile_(sig)
+
+    dispatcher.compile = compile
+
+
+try:
+    for dispatcher in (flux._refine_balance, flux._reduced_solve):
+        after_the_caller(dispatcher)
+except Exception:  # another Numba cache layout: compile them here if they are not there
+    pass
+flux.precompile("coefficients")
+flux.precompile("patches")
+import gc
+gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see fastmem.cli)
+"""
 
 
 _helper = None
@@ -157,8 +209,11 @@ def start_compile_helper() -> bool:
     try:
         if _cpus() < 2 or _cached(flux._reconstruct_chunk):
             return False
+        from . import kernels
+
+        folders = [os.path.dirname(os.path.abspath(f)) for f in (__file__, kernels.__file__)]
         _helper = subprocess.Popen(
-            [sys.executable, "-c", _HELPER_CODE],
+            [sys.executable, "-c", _HELPER_CODE, *folders],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
@@ -196,6 +251,19 @@ def _join_helper(proc) -> bool:
         logger.debug("compile helper failed (exit %s): %s", proc.returncode, " | ".join(tail))
         return False
     return True
+
+
+def _precompile_rows() -> None:
+    """Newton-min's history-row kernel, with the argument types of a solve (read-only mesh
+    indices): otherwise it compiles after the wait for the helper (0.1 s more wall)."""
+    import numpy as np
+
+    from .kernels import rows
+
+    z = np.zeros(0)
+    interior = np.zeros(0, dtype=np.int64)
+    interior.setflags(write=False)
+    rows.row_measures(z, z, z, interior, np.zeros(0, dtype=np.bool_), 1.0)
 
 
 def _precompile_locate() -> None:
@@ -261,10 +329,13 @@ def warm_up(
     helper = _take_helper() if uses_flux and start_compile_helper() else None
     if helper is not None:
         _kflux.compile_gate = lambda: _join_helper(helper)
-        # meanwhile: the flux kernels the helper does not compile and the point
-        # location of the nested iteration (otherwise compiled after the wait)
+        # meanwhile: the flux kernels the helper does not compile and, for a mesh
+        # without a coarser version, the point location of its auxiliary coarse
+        # mesh (otherwise compiled after the wait; nested structured meshes need none)
         _kflux.precompile("estimators")
-        _precompile_locate()
+        _precompile_rows()
+        if unstructured:
+            _precompile_locate()
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:

@@ -17,12 +17,10 @@ __all__ = ["csr_pattern", "position_map"]
 
 
 @jit
-def _row_counts(n, edges):
-    counts = np.ones(n, dtype=np.int64)  # the diagonal
+def _count_rows(edges, counts):
     for e in range(edges.shape[0]):
         counts[edges[e, 0]] += 1
         counts[edges[e, 1]] += 1
-    return counts
 
 
 def _sort_rows(indptr, indices):
@@ -43,9 +41,8 @@ def _sort_rows_range(lo_row, hi_row, indptr, indices):
 
 
 @jit
-def _fill_rows(n, edges, indptr, indices):
-    fill = indptr[:-1].copy()
-    for a in range(n):
+def _fill_rows(edges, fill, indices):
+    for a in range(fill.shape[0]):
         indices[fill[a]] = a
         fill[a] += 1
     for e in range(edges.shape[0]):
@@ -73,11 +70,12 @@ def csr_pattern(n, edges, index_dtype):
     indptr : ndarray, shape (n + 1,)
     indices : ndarray, shape (n + 2 E,)
     """
-    counts = _row_counts(n, edges)
+    counts = np.ones(n, dtype=np.int64)  # the diagonal
+    _count_rows(edges, counts)  # (the kernels allocate nothing: less code to compile)
     indptr = np.zeros(n + 1, dtype=index_dtype)
     np.cumsum(counts, out=indptr[1:])
     indices = np.empty(int(indptr[-1]), dtype=index_dtype)
-    _fill_rows(n, edges, indptr, indices)
+    _fill_rows(edges, indptr[:-1].copy(), indices)
     _sort_rows(indptr, indices)
     return indptr, indices
 

@@ -10,9 +10,9 @@ each vertex's bucket (a vertex's degree), instead of an O(M log M) sort and a
 dozen passes over (3M,) arrays.
 
 Index dtypes: the half-edge arrays of the pass and the returned ``edges``,
-``counts`` and ``forward`` are int32 (half the memory of int64: the pass's
-peak drops from 150 to 78 bytes per vertex, the retained ``edges`` from 48 to
-24), and so are ``tri_edges`` and ``edge_triangles`` (24 instead of 48 bytes per
+``counts`` and ``forward`` are int32 (half the memory of int64: the pass holds
+12 bytes per half-edge, about 72 per vertex, the retained ``edges`` 24 instead
+of 48), and so are ``tri_edges`` and ``edge_triangles`` (24 instead of 48 bytes per
 vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
 (:data:`fastmem.mesh.INDEX_LIMIT` checks it).  The patch arrays of
 :func:`vertex_patches` are int32 (triangles) and int8 (local index 0, 1, 2).
@@ -27,9 +27,15 @@ from ._jit import jit, pjit
 __all__ = ["edge_topology", "lumped_mass", "refined_edge_topology", "vertex_patches"]
 
 
-@jit
 def edge_topology(t, n):
     """Edges, triangle edges and edge triangles of the triangles ``t`` (M, 3) over ``n`` vertices.
+
+    A wrapper around the Numba kernels :func:`_sort_half_edges` (the counting
+    and insertion sorts, which return the number of edges) and
+    :func:`_number_edges` (the five arrays); the arrays are allocated here, so
+    that the kernels compile no allocation code (a cold start compiled 0.5 s of
+    NumPy allocation functions for this one kernel), and the half-edges' lower
+    end points are freed before the edge arrays are allocated.
 
     Returns
     -------
@@ -46,34 +52,57 @@ def edge_topology(t, n):
         of a consistently oriented mesh has exactly one).
     """
     m = t.shape[0]
-    nh = 3 * m
-    lo = np.empty(nh, dtype=np.int32)
-    hi = np.empty(nh, dtype=np.int32)
-    fwd = np.empty(nh, dtype=np.bool_)
+    lo = np.empty(3 * m, dtype=np.int32)
+    hi = np.empty(3 * m, dtype=np.int32)
+    order = np.empty(3 * m, dtype=np.int32)
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    ne = _sort_half_edges(t, lo, hi, ptr, order)
+    del lo
+    edges = np.empty((ne, 2), dtype=np.int32)
+    tri_edges = np.empty((m, 3), dtype=np.int32)
+    et = np.empty((ne, 2), dtype=np.int32)
+    counts = np.empty(ne, dtype=np.int32)
+    forward = np.empty(ne, dtype=np.int32)
+    _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward)
+    return edges, tri_edges, et, counts, forward
+
+
+@jit
+def _sort_half_edges(t, lo, hi, ptr, order):
+    """Half-edges sorted by ``(lo, hi)``, stable; returns the number of distinct pairs.
+
+    Fills ``lo``, ``hi`` (3M,) with the end points of every half-edge, ``ptr``
+    (N + 1,), zero on entry, with the bucket pointer of each lower end point,
+    and ``order`` (3M,) with the half-edges by bucket, each bucket sorted by
+    ``hi`` (ties in the order of ``h``).
+    """
+    m = t.shape[0]
+    n = ptr.shape[0] - 1
     for k in range(m):
         for i in range(3):
             a = t[k, (i + 1) % 3]
             b = t[k, (i + 2) % 3]
             h = 3 * k + i
-            fwd[h] = a < b
             if a < b:
                 lo[h] = a
                 hi[h] = b
             else:
                 lo[h] = b
                 hi[h] = a
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    for h in range(nh):
-        ptr[lo[h] + 1] += 1
+            ptr[min(a, b) + 1] += 1
     for v in range(n):
         ptr[v + 1] += ptr[v]
-    fill = ptr[:-1].copy()
-    order = np.empty(nh, dtype=np.int32)
-    for h in range(nh):
+    # counting sort on lo, with ptr[v] as the cursor of bucket v (it ends at ptr[v + 1])
+    for h in range(3 * m):
         v = lo[h]
-        order[fill[v]] = h
-        fill[v] += 1
-    # stable insertion sort by hi inside each bucket (half-edges already in order of h)
+        order[ptr[v]] = h
+        ptr[v] += 1
+    for v in range(n, 0, -1):
+        ptr[v] = ptr[v - 1]
+    ptr[0] = 0
+    # stable insertion sort by hi inside each bucket (half-edges already in order of h);
+    # a new edge starts where (lo, hi) changes inside a bucket
+    ne = 0
     for v in range(n):
         for p in range(ptr[v] + 1, ptr[v + 1]):
             h = order[p]
@@ -83,33 +112,37 @@ def edge_topology(t, n):
                 order[q + 1] = order[q]
                 q -= 1
             order[q + 1] = h
-    # distinct pairs: a new edge starts where (lo, hi) changes inside a bucket
-    ne = 0
-    for v in range(n):
         for p in range(ptr[v], ptr[v + 1]):
             if p == ptr[v] or hi[order[p]] != hi[order[p - 1]]:
                 ne += 1
-    edges = np.empty((ne, 2), dtype=np.int32)
-    et = np.full((ne, 2), -1, dtype=np.int32)
-    counts = np.zeros(ne, dtype=np.int32)
-    forward = np.zeros(ne, dtype=np.int32)
-    tri_edges = np.empty((m, 3), dtype=np.int32)
+    return ne
+
+
+@jit
+def _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward):
+    """The arrays of :func:`edge_topology` from the sorted half-edges of :func:`_sort_half_edges`."""
+    n = ptr.shape[0] - 1
     e = -1
     for v in range(n):
         for p in range(ptr[v], ptr[v + 1]):
             h = order[p]
+            k = h // 3
+            i = h - 3 * k
             if p == ptr[v] or hi[h] != hi[order[p - 1]]:
                 e += 1
                 edges[e, 0] = v
                 edges[e, 1] = hi[h]
+                et[e, 0] = -1
+                et[e, 1] = -1
+                counts[e] = 0
+                forward[e] = 0
             c = counts[e]
             if c < 2:
-                et[e, c] = h // 3
+                et[e, c] = k
             counts[e] = c + 1
-            if fwd[h]:
+            if t[k, (i + 1) % 3] < t[k, (i + 2) % 3]:
                 forward[e] += 1
-            tri_edges[h // 3, h % 3] = e
-    return edges, tri_edges, et, counts, forward
+            tri_edges[k, i] = e
 
 
 @pjit
@@ -265,7 +298,6 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
     return edges, tri_edges, et, counts, forward
 
 
-@jit
 def vertex_patches(t, ptr):
     """Patch arrays in CSR form: the half-edges ``3 k + i`` of each vertex ``t[k, i]``.
 
@@ -273,31 +305,42 @@ def vertex_patches(t, ptr):
     O(N + M): the same order as a stable argsort of ``t.ravel()`` (triangles of a
     patch ascending).  Returns ``patch_triangles`` (int32: ``M < 2**31``, checked by
     :data:`fastmem.mesh.INDEX_LIMIT`) and ``patch_local`` (int8: 0, 1 or 2).
+    A wrapper around the Numba kernel :func:`_fill_patches` (arrays allocated here).
     """
     m = t.shape[0]
-    fill = ptr[:-1].copy()
     tris = np.empty(3 * m, dtype=np.int32)
     local = np.empty(3 * m, dtype=np.int8)
-    for k in range(m):
+    _fill_patches(t, ptr[:-1].copy(), tris, local)
+    return tris, local
+
+
+@jit
+def _fill_patches(t, fill, tris, local):
+    """Counting sort of the half-edges by vertex; ``fill`` (N,) starts at the bucket starts."""
+    for k in range(t.shape[0]):
         for i in range(3):
             v = t[k, i]
             p = fill[v]
             tris[p] = k
             local[p] = i
             fill[v] = p + 1
-    return tris, local
 
 
-@numba.njit(cache=True, nogil=True)  # no fastmath: x / 3 must not become x * (1 / 3)
 def lumped_mass(t, areas, n):
     """``B_a = sum over the patch of |K| / 3``, summed in the order of ``t.ravel()``.
 
     The same additions in the same order as ``np.bincount(t.ravel(),
-    np.repeat(areas / 3, 3))``, so the same bits (hence compiled without fastmath).
+    np.repeat(areas / 3, 3))``, so the same bits.  A wrapper around the Numba
+    kernel :func:`_add_thirds` (the result is allocated here).
     """
     b = np.zeros(n)
+    _add_thirds(t, areas, b)
+    return b
+
+
+@numba.njit(cache=True, nogil=True)  # no fastmath: x / 3 must not become x * (1 / 3)
+def _add_thirds(t, areas, b):
     for k in range(t.shape[0]):
         w = areas[k] / 3.0
         for i in range(3):
             b[t[k, i]] += w
-    return b

@@ -97,6 +97,64 @@ def test_interpolation_is_exact_for_linear_functions(kind):
     assert np.allclose(mat.sum(axis=1), 1.0, rtol=0, atol=1e-14)
 
 
+def _located_interpolation(coarse, fine):
+    """The interpolation by point location (the path of meshes that are not nested)."""
+    from fastmem.coarsen import locate
+
+    tri, bary = locate(coarse, fine.vertices)
+    rows = np.repeat(np.arange(fine.n_vertices), 3)
+    cols = coarse.triangles[tri].ravel()
+    shape = (fine.n_vertices, coarse.n_vertices)
+    mat = sp.csr_matrix((bary.ravel(), (rows, cols)), shape=shape)
+    mat.eliminate_zeros()
+    return mat
+
+
+@pytest.mark.parametrize(
+    ("make", "dyadic"),
+    [
+        (lambda: fm.Mesh.square(16), True),
+        (lambda: fm.Mesh.square(12), False),
+        (lambda: fm.Mesh.square(6), False),
+        (lambda: fm.Mesh.square(8, diagonal="right"), True),
+        (lambda: fm.Mesh.square(10, diagonal="left"), False),
+        (lambda: fm.Mesh.rectangle(12, 8, bounds=(0.1, 3.3, -0.7, 1.9)), False),
+        (lambda: fm.Mesh.lshape(16), True),
+        (lambda: fm.Mesh.lshape(12), False),
+        (lambda: fm.Mesh.square(16).refine(), True),
+        (lambda: fm.Mesh.rectangle(5, 3, bounds=(0.1, 3.3, -0.7, 1.9)).refine(), False),
+    ],
+    ids=["sq16", "sq12", "sq6", "right", "left", "rect", "L16", "L12", "red", "red-rect"],
+)
+def test_nested_interpolation_without_point_location(monkeypatch, make, dyadic):
+    """Nested meshes: weights from the indices, as point location gives them up to round-off.
+
+    On dyadic coordinates (n a power of two on (-1, 1)^2) the same bits; point
+    location is not called at all (its kernels are not compiled for such runs).
+    """
+    import fastmem.nested
+
+    fine = make()
+    coarse = fine.coarser()
+    want = _located_interpolation(coarse, fine)
+    monkeypatch.setattr(fastmem.nested, "locate", None)  # any call fails
+    got = interpolation_matrix(coarse, fine)
+    diff = abs(got - want)
+    assert (diff.max() if diff.nnz else 0.0) <= 1e-15
+    assert np.array_equal(got.sum(axis=1).A.ravel(), np.ones(fine.n_vertices))
+    if dyadic:
+        assert (got != want).nnz == 0
+
+
+def test_structured_solve_locates_no_point(monkeypatch):
+    import fastmem.nested
+
+    monkeypatch.setattr(fastmem.nested, "locate", None)
+    res = fm.solve(_default_scene(64))
+    assert len(res.parameters["solver"]["levels"]) == 3
+    assert res.converged
+
+
 def test_meshes_without_a_coarser_version():
     assert fm.Mesh.square(5).coarser() is None  # odd number of cells
     mesh = fm.Mesh.square(8)
