@@ -139,6 +139,7 @@ def _contact(d, v):
             if "energy_error" in big:
                 v["contact_effectivity_mms"] = f"{big['effectivity']:.2f}"
     table = _contact_table(rows)
+    v["contact_solve_date"] = d.get("machine", {}).get("date", "")[:10]
     if table:
         v["contact_table"] = table
     gen = [
