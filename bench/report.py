@@ -262,6 +262,8 @@ def _scaling(d, v):
             v[f"scaling_exp_{ph}"] = f"{p:.2f}"
     for ph in d.get("phases", []):
         v[f"scaling_{ph}_s"] = f"{big['phases'][ph]['median']:.2f}"
+    if "solve_poisson_units" in big:  # rows measured since the unit joined the benchmark
+        v["scaling_solve_pu"] = f"{big['solve_poisson_units']:.2f}"
 
 
 def _threads(d, v):
