@@ -227,10 +227,61 @@ class AMGPreconditioner:
         self.cycle = cycle
         self.n = matrix.shape[0]
         self._op = self.ml.aspreconditioner(cycle=cycle)
+        self._coarse = opts.get("coarse_solver", "pinv")  # pyamg's default for SA
+        self._setup_ops = None  # the setup's coarse operators, once :meth:`update` runs
+        self.updates = 0
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One multigrid cycle from a zero initial guess: ``z ~ A^-1 r``."""
         return self._op.matvec(r)
+
+    def update(self, matrix, index: np.ndarray, delta) -> float:
+        """Galerkin update: the hierarchy of the setup's prolongators for a changed matrix.
+
+        ``matrix`` is the new finest operator ``A = A_0 + D``, where ``A_0`` is the
+        matrix the hierarchy was *set up* for and ``D`` (symmetric) is zero outside
+        the rows and columns ``index``; ``delta`` is ``D[index][:, index]``.  The
+        prolongators ``P_l`` (and the aggregation, strength and smoothing behind
+        them) are kept; every coarse operator becomes the exact Galerkin product
+        of the new matrix, ``A_(l+1) = P_l^T A_l P_l``, computed as the setup's
+        operator plus ``P_l^T D_l P_l`` restricted to the rows of ``P_l`` that
+        ``D_l`` touches: O(size of the change) sparse work per level instead of a
+        new setup.  The coarsest level's solver is refactored (at most
+        ``max_coarse`` unknowns).
+
+        Always relative to the setup's operators (kept, not modified), so the
+        result does not depend on the updates made before: an update to the same
+        matrix after a rebuild of the hierarchy is bit for bit the same
+        hierarchy.  Returns the seconds taken.
+
+        Why: the inexact Newton-min step's gap system changes in a band of a
+        few thousand vertices along the free boundary from one Newton step to
+        the next.  Reused unchanged (the preconditioner of an older active set),
+        its CG converged at 0.7-0.87 per iteration instead of about 0.15; a new
+        setup per step cost about as much as the iterations it saved.
+        """
+        from pyamg.multilevel import coarse_grid_solver
+
+        t0 = time.perf_counter()
+        levels = self.ml.levels
+        if self._setup_ops is None:  # the setup's coarse operators (references, not copies)
+            self._setup_ops = [lv.A for lv in levels[1:]]
+        levels[0].A = matrix.tocsr()
+        rows = np.asarray(index)
+        d = sp.csr_matrix(delta)
+        for lev in range(len(levels) - 1):
+            p = levels[lev].P
+            p_rows = (p if p.format == "csr" else p.tocsr())[rows]
+            dc = (p_rows.T @ (d @ p_rows)).tocsr()
+            dc.eliminate_zeros()
+            base = self._setup_ops[lev]
+            new = base + dc.astype(base.dtype, copy=False)
+            levels[lev + 1].A = new.tocsr() if new.format != "csr" else new
+            rows = np.flatnonzero(np.diff(dc.indptr))
+            d = dc[rows][:, rows]
+        self.ml.coarse_solver = coarse_grid_solver(self._coarse)
+        self.updates += 1
+        return time.perf_counter() - t0
 
 
 def amg_preconditioner(matrix, options: dict | None = None) -> AMGPreconditioner:

@@ -212,6 +212,22 @@ def gap_matrix(a, active):
     return out
 
 
+def gap_delta(a, old, new):
+    """``gap_matrix(a, new) - gap_matrix(a, old)`` on the only rows and columns it touches.
+
+    Returns ``(index, delta)``: the sorted vertices whose rows or columns change (the
+    vertices whose activity changed and their neighbours in ``a``) and the difference
+    restricted to them, a CSR matrix of size ``len(index)``.  O(size of the change).
+    """
+    flipped = np.flatnonzero(old != new)
+    index = np.union1d(flipped, a[flipped].indices)
+    sub = a[index][:, index].tocsr()
+    sub.sort_indices()
+    delta = gap_matrix(sub, new[index]) - gap_matrix(sub, old[index])
+    delta.eliminate_zeros()
+    return index, delta
+
+
 class DecoupledCG:
     """CGs for the sum s (one for the level) and the gap w (one per step), docs/method.md §3.3.
 
@@ -234,6 +250,7 @@ class DecoupledCG:
         self.pre_all = LazyAMG(a, options.amg_options, stats)
         self.pre_w = self.pre_all
         self.setup_active = np.zeros(system.interior.size, dtype=bool)
+        self.update_active = self.setup_active  # the active set the gap hierarchy is for
         self.cg_s = None
         self.cg_w = None
         self.s_done = False
@@ -256,10 +273,22 @@ class DecoupledCG:
             self.stats["amg_setups"] += 1
             self.stats["amg_setup_seconds"] += self.pre_w.setup_seconds
             self.setup_active = active.copy()
+            self.update_active = self.setup_active
+        elif self.pre_w is not self.pre_all and not np.array_equal(active, self.update_active):
+            # a few thousand vertices changed: same prolongators, exact coarse operators
+            self._update_w(mat, active)
         rhs = np.where(active, 0.0, st.rhs_w)
         w0 = np.where(active, 0.0, (u1 - u2)[ii])
         self.active = active.copy()
         self.cg_w = PCG(mat, rhs, w0, self._masked)
+
+    def _update_w(self, mat, active):
+        """Galerkin update of the gap hierarchy to ``active`` (:meth:`AMGPreconditioner.update`)."""
+        index, delta = gap_delta(self.a_ii, self.setup_active, active)
+        seconds = self.pre_w.update(mat, index, delta)
+        self.stats["amg_updates"] = self.stats.get("amg_updates", 0) + 1
+        self.stats["amg_update_seconds"] = self.stats.get("amg_update_seconds", 0.0) + seconds
+        self.update_active = active.copy()
 
     def spill(self):
         """Free the interior Laplacian, the gap matrix and the hierarchies during a flux.
@@ -305,6 +334,12 @@ class DecoupledCG:
             same = self.cg_w is not None and np.array_equal(self.setup_active, self.active)
             mat = self.cg_w.a if same else gap_matrix(a, self.setup_active)
             self.pre_w = _resetup(mat, self.options, self.stats)
+            if not np.array_equal(self.update_active, self.setup_active):
+                # the Galerkin update is relative to the setup: the same hierarchy again
+                target = self.update_active
+                mat = self.cg_w.a if np.array_equal(target, self.active) else gap_matrix(a, target)
+                index, delta = gap_delta(a, self.setup_active, target)
+                self.pre_w.update(mat, index, delta)
 
     def _s_finished(self):
         """Mark s done (at round-off): free its search vectors and, if unused, its hierarchy."""

@@ -39,6 +39,16 @@ at round-off level (``eta_alg`` of the exact methods, 1e-14 to 1e-12 against
 ``eta`` ~ 2e-2; ``eta_lin = 0``) are compared to 1e-10 of the bound they
 enter, not to their own round-off digits.  ``converged`` is equal.
 
+``lam`` is recovered from ``A1 u1 - F1`` divided by the lumped mass: when
+every entry of ``u1`` moves by ``delta_u = 1e-12 * s(u1)``, an entry of
+``lam`` moves by up to ``amp * delta_u`` with ``amp = max_a (sum_b |A1_ab|)
+/ B_a`` (about ``8 mu1 / h^2``: 8e3 to 3e4 on these meshes).  Its entries may
+therefore move by ``max(1e-12 * s(lam), amp * delta_u)``.  Before this term,
+the lam samples of three manufactured general-path cases failed on an AMD
+EPYC machine at the recorded commit (3e-12 off, tolerance 6e-14) while u1
+and u2 agreed to 1e-12: the reference differs between machines exactly by
+the amplified round-off of u1.
+
 The reference is machine-specific at round-off level (recorded with the
 numpy/scipy/pyamg/numba versions in ``meta.versions``); on this machine the
 results were bitwise reproducible across runs, processes and Numba thread
@@ -93,9 +103,21 @@ def _scale(fingerprint, n):
     return max(abs(fingerprint["norm"]) / math.sqrt(n), TINY)
 
 
-def _fingerprint_mismatches(name, got, expected, n, w_l1, indices):
+def _lam_amplification(case_id):
+    """``max_a (sum_b |A1_ab|) / B_a`` over the interior vertices of the case's mesh."""
+    from fastmem.assembly import assemble_stiffness
+
+    scene = record.make_scene(record.split_case(case_id)[0])
+    mesh = scene.mesh
+    a1 = abs(assemble_stiffness(mesh, scene.mu1)).tocsr()
+    row_sums = np.asarray(a1.sum(axis=1)).ravel()
+    ii = mesh.interior_vertices
+    return float(np.max(row_sums[ii] / mesh.lumped_mass[ii]))
+
+
+def _fingerprint_mismatches(name, got, expected, n, w_l1, indices, floor=0.0):
     scale = _scale(expected, n)
-    delta = ARRAY_RTOL * scale
+    delta = max(ARRAY_RTOL * scale, floor)
     tolerances = {"norm": math.sqrt(n) * delta, "sum": n * delta, "dot": w_l1 * delta}
     out = []
     for key, tol in tolerances.items():
@@ -126,6 +148,8 @@ def test_pipeline_reference(case_id):
     n = expected["n_vertices"]
     w_l1 = float(np.sum(np.abs(record.weights(n))))
     recorded = expected["fingerprints"]
+    # lam = (A1 u1 - F1) / B: the round-off of u1 amplified (module docstring)
+    lam_floor = _lam_amplification(case_id) * ARRAY_RTOL * _scale(recorded["u1"], n)
     problems = []
     for name in record.ARRAYS:
         problems += _fingerprint_mismatches(
@@ -135,6 +159,7 @@ def test_pipeline_reference(case_id):
             n,
             w_l1,
             expected["indices"],
+            floor=lam_floor if name == "lam" else 0.0,
         )
 
     if method in AMG_METHODS:
