@@ -157,6 +157,7 @@ def configurations(n, a):
 def run(sizes, a):
     import fastmem as fm
 
+    fm.warm_up()  # every kernel of a default solve, including those of large meshes only
     warm = fm.Manufactured().scene(fm.Mesh.square(8))  # compile / load the JIT caches
     for method in ("inexact", "exact-amg", "exact"):
         for path in ("decoupled", "general"):

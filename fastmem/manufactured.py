@@ -576,13 +576,24 @@ class Manufactured:
         c = -2.0 * self._beta / self._g * qp
         return c * bx, c * by
 
-    def _lap_gap(self, x, y):
+    def _load_parts(self, x, y):
+        """``lap b``, ``lap w`` and ``lam`` at the points, sharing ``q`` and ``lap b``.
+
+        ``lap w = (2 / g) (beta^2 |grad b|^2 - beta q lap b)`` where ``q > 0``, else 0
+        (``w = (q^+)^2 / g``); ``lam`` as :meth:`lam`.  ``q`` and ``lap b`` are
+        computed once for both terms: the loads are evaluated at every quadrature
+        point of the finest mesh (7 per triangle).
+        """
         q = self.q(x, y)
+        lap_b = _lap_bubble(x, y)
         bx, by = _grad_bubble(x, y)
-        lap = (2.0 / self._g) * (
-            self._beta**2 * (bx * bx + by * by) - self._beta * q * _lap_bubble(x, y)
-        )
-        return np.where(q > 0.0, lap, 0.0)
+        lap = (2.0 / self._g) * (self._beta**2 * (bx * bx + by * by) - self._beta * q * lap_b)
+        lap_w = np.where(q > 0.0, lap, 0.0)
+        if self._discontinuous:
+            lam = np.where(q < 0.0, self._kappa, 0.0)
+        else:
+            lam = self._kappa * np.maximum(-q, 0.0)
+        return lap_b, lap_w, lam
 
     def grad_u1(self, x, y) -> tuple[np.ndarray, np.ndarray]:
         """Return the gradient of ``u1``, ``(s0 grad b + mu2 grad w) / (mu1 + mu2)``.
@@ -637,8 +648,9 @@ class Manufactured:
         """
         x, y = _as_xy(x, y)
         mu1, mu2 = self._mu
-        lap_u1 = (self._s0 * _lap_bubble(x, y) + mu2 * self._lap_gap(x, y)) / (mu1 + mu2)
-        return -mu1 * lap_u1 - self.lam(x, y)
+        lap_b, lap_w, lam = self._load_parts(x, y)
+        lap_u1 = (self._s0 * lap_b + mu2 * lap_w) / (mu1 + mu2)
+        return -mu1 * lap_u1 - lam
 
     def f2(self, x, y) -> np.ndarray:
         """Return the load of the lower membrane, ``f2 = -mu2 lap u2 + lam``.
@@ -655,8 +667,9 @@ class Manufactured:
         """
         x, y = _as_xy(x, y)
         mu1, mu2 = self._mu
-        lap_u2 = (self._s0 * _lap_bubble(x, y) - mu1 * self._lap_gap(x, y)) / (mu1 + mu2)
-        return -mu2 * lap_u2 + self.lam(x, y)
+        lap_b, lap_w, lam = self._load_parts(x, y)
+        lap_u2 = (self._s0 * lap_b - mu1 * lap_w) / (mu1 + mu2)
+        return -mu2 * lap_u2 + lam
 
     # ------------------------------------------------------------------ meshes
 

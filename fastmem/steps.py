@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .amg import PCG, LazyAMG, amg_preconditioner
+from .amg import PCG, LazyAMG, amg_preconditioner, threaded
 from .linear import DecoupledStep
 
 __all__ = [
@@ -103,7 +103,7 @@ class GeneralCG:
         ii = st.interior
         p = st.prolongation(active)
         if self.active is None or not np.array_equal(active, self.active):
-            self.mat = (p.T @ st.k_ii @ p).tocsr()  # the system changes size: new hierarchy
+            self.mat = threaded((p.T @ st.k_ii @ p).tocsr())  # new size: new hierarchy
             self.pre = amg_preconditioner(self.mat, dict(self.options.amg_options))
             self.stats["amg_setups"] += 1
             self.stats["amg_setup_seconds"] += self.pre.setup_seconds
@@ -144,7 +144,7 @@ class GeneralCG:
         st.k_ii = st.reduced_stiffness()
         if self.active is not None:
             p = self.p = st.prolongation(self.active)
-            self.mat = self.cg.a = (p.T @ st.k_ii @ p).tocsr()
+            self.mat = self.cg.a = threaded((p.T @ st.k_ii @ p).tocsr())
             self.cg.b = p.T @ np.concatenate([st.rhs1, st.rhs2])
             self.pre = self.cg.m = _resetup(self.mat, self.options, self.stats)
 
@@ -221,7 +221,16 @@ def gap_delta(a, old, new):
     """
     flipped = np.flatnonzero(old != new)
     index = np.union1d(flipped, a[flipped].indices)
-    sub = a[index][:, index].tocsr()
+    rows = a[index]  # the rows of index; their columns mapped into index (those inside)
+    pos = np.searchsorted(index, rows.indices)
+    pos[pos == index.size] = 0
+    inside = index[pos] == rows.indices
+    kept = np.concatenate([[0], np.cumsum(inside)])
+    ptr = kept[rows.indptr].astype(rows.indptr.dtype)  # entries kept before each row
+    sub = sp.csr_matrix(
+        (rows.data[inside], pos[inside].astype(rows.indices.dtype), ptr),
+        shape=(index.size, index.size),
+    )
     sub.sort_indices()
     delta = gap_matrix(sub, new[index]) - gap_matrix(sub, old[index])
     delta.eliminate_zeros()
@@ -241,7 +250,7 @@ class DecoupledCG:
         self.system = system
         self.options = options
         self.stats = stats
-        a = system.a_ii
+        a = system.a_ii = threaded(system.a_ii)  # a view: CG products in the kernel threads
         self.a_ii = a
         self.diag = a.diagonal()
         # the Laplacian's hierarchy, built when first applied (the CG of s, or of w while
@@ -263,7 +272,7 @@ class DecoupledCG:
         if self.cg_s is None:
             self.cg_s = PCG(self.a_ii, st.rhs_s, (st.mu1 * u1 + st.mu2 * u2)[ii], self.pre_all)
         self.cg_w = None  # the previous gap matrix and CG vectors: free them first
-        mat = gap_matrix(self.a_ii, active)
+        mat = threaded(gap_matrix(self.a_ii, active))
         changed = int(np.count_nonzero(active != self.setup_active))
         if changed > self.options.amg_reuse * active.size:
             self.pre_w = None  # free the old hierarchy before the new one is built
@@ -318,13 +327,13 @@ class DecoupledCG:
         """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
         if self.a_ii is not None:
             return
-        a = self.system.a_ii = self.system.interior_laplacian()
+        a = self.system.a_ii = threaded(self.system.interior_laplacian())
         self.a_ii = self.pre_all.matrix = a
         self.diag = a.diagonal()
         if self.cg_s is not None:
             self.cg_s.a = a
         if self.cg_w is not None:
-            self.cg_w.a = gap_matrix(a, self.active)
+            self.cg_w.a = threaded(gap_matrix(a, self.active))
             self.cg_w.b = np.where(self.active, 0.0, self.system.rhs_w)
         rebuild_all, rebuild_w = self._rebuild
         if rebuild_all:

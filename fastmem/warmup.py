@@ -266,6 +266,13 @@ def _precompile_rows() -> None:
     rows.row_measures(z, z, z, interior, np.zeros(0, dtype=np.bool_), 1.0)
 
 
+def _precompile_cycles() -> None:
+    """The multigrid cycle's kernels (hybrid sweep, threaded products): sizes of a real solve."""
+    from .amg import precompile
+
+    precompile()
+
+
 def _precompile_locate() -> None:
     from .coarsen import locate
     from .mesh import Mesh
@@ -336,6 +343,7 @@ def warm_up(
         _precompile_rows()
         if unstructured:
             _precompile_locate()
+    _precompile_cycles()  # (with or without a helper: the tiny solve does not reach them)
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:
