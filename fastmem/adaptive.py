@@ -35,9 +35,9 @@ Linear steps:
   exceeds half of the algebraic budget) and one CG per Newton step for the
   gap ``w`` on the fixed-size matrix that is the interior Laplacian with the
   rows and columns of the active set replaced by its diagonal (``w = 0``
-  there).  Its AMG hierarchy is reused while the active set has changed in
-  at most ``amg_reuse`` (a fraction) of the interior vertices since the last
-  setup, and rebuilt otherwise.
+  there).  Its AMG setup is kept while the active set has changed in at most
+  ``amg_reuse`` (a fraction) of the interior vertices since the last setup
+  (the coarse operators updated to each new active set), and redone otherwise.
 """
 
 from __future__ import annotations

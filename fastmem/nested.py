@@ -80,7 +80,7 @@ def _grid_indices(points, grid) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _grid_columns(coarse, fine):
-    """The two coarse vertices of each fine vertex of a grid twice as fine, or None.
+    """Return the two coarse vertices of each fine vertex of a grid twice as fine, or None.
 
     Returns ``(first, second)``, int64 (N_fine,): a fine vertex on a coarse vertex
     has ``second = -1``; one on the midpoint of a coarse edge (a side of a cell, or

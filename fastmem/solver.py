@@ -112,9 +112,12 @@ def solve(
         Options of :func:`pyamg.smoothed_aggregation_solver` (plus ``cycle``);
         default :data:`fastmem.amg.AMG_DEFAULTS` (pyamg's defaults, V-cycles).
     amg_reuse : float
-        Decoupled path: reuse the gap system's AMG hierarchy while the active
-        set differs from the one it was built for in at most this fraction of
-        the interior vertices (0: rebuild whenever it changed).
+        Decoupled path: keep the gap system's AMG setup (its prolongators)
+        while the active set differs from the one it was built for in at most
+        this fraction of the interior vertices; its coarse operators are
+        updated to every new active set (Galerkin products,
+        :meth:`fastmem.amg.AMGPreconditioner.update`).  0: a new setup whenever
+        the active set changed.
     nested : bool or "auto"
         Without ``initial`` (every method): solve on the chain of coarser meshes
         (:meth:`Mesh.coarser`, down to about 1000 vertices) and prolong each

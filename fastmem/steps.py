@@ -242,8 +242,10 @@ class DecoupledCG:
 
     The gap system is the interior Laplacian with the rows and columns of the
     active set replaced by its diagonal (``w = 0`` there), of fixed size; its
-    AMG hierarchy is reused while the active set differs from the one it was
-    built for in at most ``amg_reuse`` of the interior vertices.
+    AMG setup is kept while the active set differs from the one it was built
+    for in at most ``amg_reuse`` of the interior vertices, with the coarse
+    operators updated to the current active set (:meth:`_update_w`; a stale
+    hierarchy slowed CG down four-fold).
     """
 
     def __init__(self, system, options, stats):

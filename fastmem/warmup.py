@@ -254,8 +254,11 @@ def _join_helper(proc) -> bool:
 
 
 def _precompile_rows() -> None:
-    """Newton-min's history-row kernel, with the argument types of a solve (read-only mesh
-    indices): otherwise it compiles after the wait for the helper (0.1 s more wall)."""
+    """Compile Newton-min's history-row kernel with the argument types of a solve.
+
+    Read-only mesh indices: otherwise it compiles after the wait for the helper
+    (0.1 s more wall).
+    """
     import numpy as np
 
     from .kernels import rows
@@ -267,7 +270,7 @@ def _precompile_rows() -> None:
 
 
 def _precompile_cycles() -> None:
-    """The multigrid cycle's kernels (hybrid sweep, threaded products): sizes of a real solve."""
+    """Compile the multigrid cycle's kernels (hybrid sweep, threaded products)."""
     from .amg import precompile
 
     precompile()
