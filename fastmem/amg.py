@@ -319,12 +319,13 @@ def precompile() -> None:
     product writable or read-only, as a Result's arrays are), on a 2 x 2 matrix:
     the tiny problem of :func:`fastmem.warm_up` is below the sizes that use them.
     """
-    from .kernels.smooth import csr_matvec_range, gs_hybrid_range
+    from .kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
 
     a = sp.csr_matrix(np.array([[2.0, -1.0], [-1.0, 2.0]]))
     indptr, indices = _unsigned(a.indptr.astype(np.int32)), _unsigned(a.indices.astype(np.int32))
     x, b, old = np.zeros(2), np.ones(2), np.zeros(2)
     gs_hybrid_range(0, 2, True, indptr, indices, a.data, x, old, b)
+    cross_block_dominant(indptr, indices, a.data, 2)
     frozen = np.ones(2)
     frozen.setflags(write=False)
     for v in (b, frozen):
@@ -348,8 +349,20 @@ def _install_hybrid(ml, options: dict) -> None:
         nb = hybrid_blocks(a.shape[0])
         if not hybrid or not nb or a.format != "csr" or a.dtype != np.float64:
             continue
-        if _kernel_arrays(a):
+        if _kernel_arrays(a) and _hybrid_converges(a, nb):
             lv.presmoother = lv.postsmoother = HybridGaussSeidel(nb)
+
+
+def _hybrid_converges(a, n_blocks: int) -> bool:
+    """Whether the hybrid sweep is a convergent smoother of ``a`` (a sufficient test).
+
+    :func:`fastmem.kernels.smooth.cross_block_dominant`: each row's diagonal
+    exceeds its entries coupling other blocks (a few rows per block boundary;
+    true for every M-matrix).  Otherwise the level keeps pyamg's sweep.
+    """
+    from .kernels.smooth import cross_block_dominant
+
+    return bool(cross_block_dominant(_unsigned(a.indptr), _unsigned(a.indices), a.data, n_blocks))
 
 
 def _unsigned(index: np.ndarray) -> np.ndarray:
@@ -394,6 +407,9 @@ class AMGPreconditioner:
         with _fast_bsr_dedup():
             self.ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(matrix), **opts)
         _trim(self.ml)
+        # pyamg's own sweep (the finest level's, before any replacement): the fallback
+        # of a level whose hybrid sweep stops being convergent after an update
+        self._plain_smoother = getattr(self.ml.levels[0], "presmoother", None)
         _install_hybrid(self.ml, opts)
         self.setup_seconds = time.perf_counter() - t0
         self.cycle = cycle
@@ -469,6 +485,11 @@ class AMGPreconditioner:
             levels[lev + 1].A = threaded(new) if lev + 1 < len(levels) - 1 else new
             rows = np.flatnonzero(np.diff(dc.indptr))
             d = dc[rows][:, rows]
+        for lv in levels[:-1]:  # a hybrid sweep must stay convergent on the new operators
+            smoother = lv.presmoother
+            if isinstance(smoother, HybridGaussSeidel):
+                if not _hybrid_converges(lv.A, smoother.n_blocks):
+                    lv.presmoother = lv.postsmoother = self._plain_smoother
         self.ml.coarse_solver = coarse_grid_solver(self._coarse)
         self.updates += 1
         return time.perf_counter() - t0
