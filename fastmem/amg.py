@@ -232,19 +232,31 @@ class HybridGaussSeidel:
     def __init__(self, n_blocks: int):
         self.n_blocks = n_blocks
         self._old = None  # x before the sweep: one buffer per level, reused
+        self._busy = threading.Lock()  # a concurrent call (another thread) gets its own
 
     def __call__(self, a, x, b):
-        from .kernels import _par
-        from .kernels.smooth import gs_hybrid_range
-
         n = a.shape[0]
         nb = self.n_blocks
         edges = [n * k // nb for k in range(nb + 1)]
         indptr, indices, data = _unsigned(a.indptr), _unsigned(a.indices), a.data
-        if self._old is None or self._old.shape != x.shape:
-            # kept: a fresh copy per sweep cost more in page faults than the sweep gained
-            self._old = np.empty_like(x)
-        x_old = self._old
+        own = self._busy.acquire(blocking=False)
+        try:
+            if not own:  # the buffer is in use by a cycle in another thread
+                self._sweeps(nb, edges, indptr, indices, data, x, np.empty_like(x), b)
+                return
+            if self._old is None or self._old.shape != x.shape:
+                # kept: a fresh copy per sweep cost more in page faults than the sweep gained
+                self._old = np.empty_like(x)
+            self._sweeps(nb, edges, indptr, indices, data, x, self._old, b)
+        finally:
+            if own:
+                self._busy.release()
+
+    @staticmethod
+    def _sweeps(nb, edges, indptr, indices, data, x, x_old, b):
+        from .kernels import _par
+        from .kernels.smooth import gs_hybrid_range
+
         threads = min(_par.n_threads(), nb)
         for forward in (True, False):
             np.copyto(x_old, x)
@@ -279,14 +291,20 @@ class ThreadedCSR(sp.csr_matrix):
     multigrid hierarchies (their residuals), where the solver spends its time.
     """
 
-    def _matmul_vector(self, other):
+    def _matmul_vector(self, other):  # scipy >= 1.13
+        return self._product(other, "_matmul_vector")
+
+    def _mul_vector(self, other):  # scipy < 1.13
+        return self._product(other, "_mul_vector")
+
+    def _product(self, other, name):
         if (
             self.dtype != np.float64
             or getattr(other, "dtype", None) != np.float64
             or other.ndim != 1
             or not _kernel_arrays(self)
         ):
-            return super()._matmul_vector(other)
+            return getattr(super(), name)(other)
         from .kernels import _par
         from .kernels.smooth import csr_matvec_range
 
@@ -301,7 +319,7 @@ def threaded(a):
     """Return ``a`` as a :class:`ThreadedCSR` view if it is a large float64 CSR matrix."""
     if (
         isinstance(a, ThreadedCSR)
-        or not sp.issparse(a)
+        or not isinstance(a, sp.spmatrix)  # a csr_array's * is elementwise: left alone
         or a.format != "csr"
         or a.shape[0] < THREADED_ROWS
         or a.dtype != np.float64
@@ -332,25 +350,48 @@ def precompile() -> None:
         csr_matvec_range(0, 2, indptr, indices, a.data, v, x)
 
 
-def _install_hybrid(ml, options: dict) -> None:
-    """Threaded products and hybrid Gauss-Seidel sweeps on the large levels.
+def _sweeps_read_matrix_at_call(options: dict) -> bool:
+    """Whether both smoothers read the level's matrix when called (nothing from the setup).
 
-    The products of every level but the coarsest become :class:`ThreadedCSR` (the
-    same results); the sweeps become :class:`HybridGaussSeidel` when the smoothers
-    are pyamg's symmetric Gauss-Seidel (the default).
+    pyamg's Gauss-Seidel and SOR do; Jacobi, Richardson and Chebyshev keep a step size,
+    Schwarz, block Jacobi and the normal-equation sweeps a copy or a factor of the setup's
+    matrix, so a hierarchy with those cannot take :meth:`AMGPreconditioner.update`.
     """
+
+    def name(opt):
+        return opt if isinstance(opt, str) else opt[0] if isinstance(opt, tuple | list) else None
+
+    ok = {"gauss_seidel", "sor"}
+    return name(options.get("presmoother")) in ok and name(options.get("postsmoother")) in ok
+
+
+def _hybrid_candidates(ml, options: dict) -> list:
+    """Per level: the hybrid sweep's block count where it may replace pyamg's, else 0."""
     gs = ("gauss_seidel", {"sweep": "symmetric"})
-    hybrid = options.get("presmoother") == gs and options.get("postsmoother") == gs
+    if options.get("presmoother") != gs or options.get("postsmoother") != gs:
+        return [0] * len(ml.levels)
+    out = []
     for lv in ml.levels[:-1]:
-        lv.A = threaded(lv.A)
-        if getattr(lv, "P", None) is not None:
-            lv.P = threaded(lv.P)  # interpolation P x (rows: this level's unknowns)
         a = lv.A
         nb = hybrid_blocks(a.shape[0])
-        if not hybrid or not nb or a.format != "csr" or a.dtype != np.float64:
+        usable = a.format == "csr" and a.dtype == np.float64 and _kernel_arrays(a)
+        out.append(nb if usable else 0)
+    return out + [0]
+
+
+def _select_smoothers(ml, plain, hybrid) -> None:
+    """Each candidate level gets the hybrid sweep where it converges on the level's matrix.
+
+    Decided from the current matrix alone (not from earlier updates), so a hierarchy
+    rebuilt and updated to the same matrix gets the same smoothers.
+    """
+    for lv, (pre, post), sweep in zip(ml.levels, plain, hybrid, strict=True):
+        if sweep is None:
             continue
-        if _kernel_arrays(a) and _hybrid_converges(a, nb):
-            lv.presmoother = lv.postsmoother = HybridGaussSeidel(nb)
+        if _hybrid_converges(lv.A, sweep.n_blocks):
+            lv.presmoother = lv.postsmoother = sweep
+        else:
+            lv.presmoother, lv.postsmoother = pre, post
 
 
 def _hybrid_converges(a, n_blocks: int) -> bool:
@@ -407,10 +448,20 @@ class AMGPreconditioner:
         with _fast_bsr_dedup():
             self.ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(matrix), **opts)
         _trim(self.ml)
-        # pyamg's own sweep (the finest level's, before any replacement): the fallback
-        # of a level whose hybrid sweep stops being convergent after an update
-        self._plain_smoother = getattr(self.ml.levels[0], "presmoother", None)
-        _install_hybrid(self.ml, opts)
+        levels = self.ml.levels
+        for lv in levels[:-1]:  # products in the kernel threads (the same numbers)
+            lv.A = threaded(lv.A)
+            if getattr(lv, "P", None) is not None:
+                lv.P = threaded(lv.P)  # interpolation P x (rows: this level's unknowns)
+        # pyamg's sweeps, and the hybrid sweep of each level large enough for it
+        self._plain = [
+            (getattr(lv, "presmoother", None), getattr(lv, "postsmoother", None)) for lv in levels
+        ]
+        blocks = _hybrid_candidates(self.ml, opts)
+        self._hybrid = [HybridGaussSeidel(nb) if nb else None for nb in blocks]
+        _select_smoothers(self.ml, self._plain, self._hybrid)
+        #: whether :meth:`update` applies (the smoothers read the matrix at call time)
+        self.can_update = _sweeps_read_matrix_at_call(opts)
         self.setup_seconds = time.perf_counter() - t0
         self.cycle = cycle
         self.n = matrix.shape[0]
@@ -437,7 +488,11 @@ class AMGPreconditioner:
             return self._op.matvec(r)
         b = np.ravel(np.asarray(r, dtype=np.float64))
         x = np.zeros_like(b)
-        cycle(0, x, b, self.cycle, 1)
+        try:
+            cycle(0, x, b, str(self.cycle).upper(), 1)
+        except TypeError:  # another pyamg: its public loop from now on
+            self._cycle = None
+            return self._op.matvec(r)
         return x
 
     def update(self, matrix, index: np.ndarray, delta) -> float:
@@ -467,6 +522,8 @@ class AMGPreconditioner:
         """
         from pyamg.multilevel import coarse_grid_solver
 
+        if not self.can_update:
+            raise ValueError("this hierarchy's smoothers keep data of the setup's matrix")
         t0 = time.perf_counter()
         levels = self.ml.levels
         if self._setup_ops is None:  # the setup's coarse operators (references, not copies)
@@ -485,11 +542,7 @@ class AMGPreconditioner:
             levels[lev + 1].A = threaded(new) if lev + 1 < len(levels) - 1 else new
             rows = np.flatnonzero(np.diff(dc.indptr))
             d = dc[rows][:, rows]
-        for lv in levels[:-1]:  # a hybrid sweep must stay convergent on the new operators
-            smoother = lv.presmoother
-            if isinstance(smoother, HybridGaussSeidel):
-                if not _hybrid_converges(lv.A, smoother.n_blocks):
-                    lv.presmoother = lv.postsmoother = self._plain_smoother
+        _select_smoothers(self.ml, self._plain, self._hybrid)  # convergent on the new operators
         self.ml.coarse_solver = coarse_grid_solver(self._coarse)
         self.updates += 1
         return time.perf_counter() - t0

@@ -285,7 +285,11 @@ class DecoupledCG:
             self.stats["amg_setup_seconds"] += self.pre_w.setup_seconds
             self.setup_active = active.copy()
             self.update_active = self.setup_active
-        elif self.pre_w is not self.pre_all and not np.array_equal(active, self.update_active):
+        elif (
+            self.pre_w is not self.pre_all
+            and self.pre_w.can_update
+            and not np.array_equal(active, self.update_active)
+        ):
             # a few thousand vertices changed: same prolongators, exact coarse operators
             self._update_w(mat, active)
         rhs = np.where(active, 0.0, st.rhs_w)
@@ -306,7 +310,8 @@ class DecoupledCG:
 
         The flux needs only the mesh, the data and the triple.  Freed: the interior
         Laplacian and its diagonal, the gap matrix and the gap CG's right-hand side
-        (about 150 bytes per vertex), and the AMG hierarchies (about 75); all
+        (about 150 bytes per vertex), and the AMG hierarchies (about 100 each, and
+        after an update 16 more for the setup's coarse operators); all
         rebuilt bit for bit by :meth:`restore` (the matrices are assembled again, the
         smoothed-aggregation setup is deterministic), which the inexact step calls
         when the iteration goes on after the check

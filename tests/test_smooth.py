@@ -150,3 +150,46 @@ def test_threaded_products_equal_scipys():
     ints = np.arange(n)
     np.testing.assert_array_equal(t @ ints, m @ ints)  # not float64: scipy's path
     assert not isinstance(threaded(m[:100]), ThreadedCSR)  # small: left to scipy
+
+
+@pytest.mark.parametrize("cycle", ["V", "W", "F"])
+def test_direct_cycle_equals_pyamgs_preconditioner(cycle):
+    """The cycle called directly (no solve loop) gives pyamg's preconditioner bit for bit."""
+    a, x, y = _laplacian(64)
+    pre = amg_preconditioner(gap_matrix(a, x * x + y * y < 0.3), {"cycle": cycle})
+    assert pre._cycle is not None
+    r = np.random.default_rng(8).standard_normal(a.shape[0])
+    np.testing.assert_array_equal(pre(r), pre._op.matvec(r))
+
+
+def test_concurrent_cycles_give_the_serial_result():
+    """Two threads applying one hierarchy at once (the sweep's buffer is not shared)."""
+    import concurrent.futures
+
+    a, x, y = _laplacian(200)
+    pre = amg_preconditioner(gap_matrix(a, x * x + 0.7 * y * y < 0.3), dict(AMG_DEFAULTS))
+    assert isinstance(pre.ml.levels[0].presmoother, HybridGaussSeidel)
+    rs = np.random.default_rng(9).standard_normal((6, a.shape[0]))
+    serial = [pre(r) for r in rs]
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        for _ in range(3):
+            got = list(pool.map(pre, rs))
+            for z, ref in zip(got, serial, strict=True):
+                np.testing.assert_array_equal(z, ref)
+
+
+def test_smoothers_with_setup_data_are_not_updated():
+    """Schwarz keeps a copy of the setup's matrix: no Galerkin update, a valid solve."""
+    opts = {"presmoother": ("schwarz", {"sweep": "symmetric"})}
+    opts["postsmoother"] = opts["presmoother"]
+    a, x, y = _laplacian(32)
+    pre = amg_preconditioner(gap_matrix(a, x * x < 0.3), dict(opts))
+    assert not pre.can_update
+    with pytest.raises(ValueError, match="setup"):
+        pre.update(a, np.arange(1), sp.csr_matrix((1, 1)))
+    scene = fm.Manufactured().scene(fm.Mesh.square(64))
+    res = fm.solve(scene, method="exact-amg", path="decoupled", amg_options=opts)
+    assert sum(lv.get("amg_updates", 0) for lv in res.parameters["solver"]["levels"]) == 0
+    ref = fm.solve(fm.Manufactured().scene(fm.Mesh.square(64)), method="exact")
+    assert np.abs(res.u1 - ref.u1).max() <= 1e-9 * np.abs(ref.u1).max()
+    assert np.array_equal(res.active, ref.active)
