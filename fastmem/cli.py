@@ -280,7 +280,7 @@ def _warm_up(args, method, mesh, adaptive) -> float:
 
     cached = kernels_cached()
     if cached is False:
-        text = "  compiling Numba kernels (first run only, about 7 s) ..."
+        text = "  compiling Numba kernels (first run only, about 6 s) ..."
     else:
         text = "  loading compiled kernels ..."
     if not args.quiet:
@@ -521,7 +521,7 @@ def _skip_exit_collections() -> None:
 
     The interpreter's shutdown runs full collections over every object alive,
     and Numba's compiler leaves a great many: 0.35 s of the exit after a solve
-    (the whole first run is about 7 s), 0.03 s once they are frozen.  Only the
+    (the whole first run is about 6 s), 0.03 s once they are frozen.  Only the
     process's exit follows, which reclaims the memory anyway; files are closed
     and flushed before (archives are written atomically, standard streams are
     flushed at exit regardless).
