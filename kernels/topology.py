@@ -9,8 +9,8 @@ by a counting sort on ``lo`` (O(N + M)) and an insertion sort by ``hi`` inside
 each vertex's bucket (a vertex's degree), instead of an O(M log M) sort and a
 dozen passes over (3M,) arrays.
 
-Index dtypes: the half-edge arrays of the pass and the returned ``edges``,
-``counts`` and ``forward`` are int32 (half the memory of int64: the pass holds
+Index dtypes: the half-edge arrays of the pass and the returned ``edges``
+are int32 (``counts`` and ``forward``: int8, saturated) (half the memory of int64: the pass holds
 12 bytes per half-edge, about 72 per vertex, the retained ``edges`` 24 instead
 of 48), and so are ``tri_edges`` and ``edge_triangles`` (24 instead of 48 bytes per
 vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
@@ -23,8 +23,19 @@ import numpy as np
 from numba import prange
 
 from ._jit import jit, pjit
+from ._par import GRAIN, n_threads, parallel_for, ranges, run_ranges
 
-__all__ = ["edge_topology", "lumped_mass", "refined_edge_topology", "vertex_patches"]
+__all__ = [
+    "edge_topology",
+    "lumped_mass",
+    "rectangle_triangles",
+    "refined_edge_topology",
+    "triangle_checks",
+    "vertex_patches",
+]
+
+#: saturation value of the int8 ``counts`` and ``forward`` of :func:`edge_topology`
+COUNT_CAP = 127
 
 
 def edge_topology(t, n):
@@ -47,9 +58,14 @@ def edge_topology(t, n):
         The first two triangles of each edge in half-edge order (-1: none).
     counts : int32 (E,)
         Triangles per edge (1 on the boundary, 2 inside; more is non-manifold).
-    forward : int32 (E,)
+    forward : int8 (E,)
         Half-edges of the edge that run from ``lo`` to ``hi`` (an interior edge
         of a consistently oriented mesh has exactly one).
+
+    ``counts`` and ``forward`` are int8, saturated at :data:`COUNT_CAP` (they only feed
+    the checks of ``Mesh._set_topology``, which recounts an offending edge exactly):
+    3 bytes per edge less than int32 (150 MB at n = 4096, memory the mesh phase
+    would otherwise first-touch).
     """
     m = t.shape[0]
     lo = np.empty(3 * m, dtype=np.int32)
@@ -61,8 +77,8 @@ def edge_topology(t, n):
     edges = np.empty((ne, 2), dtype=np.int32)
     tri_edges = np.empty((m, 3), dtype=np.int32)
     et = np.empty((ne, 2), dtype=np.int32)
-    counts = np.empty(ne, dtype=np.int32)
-    forward = np.empty(ne, dtype=np.int32)
+    counts = np.empty(ne, dtype=np.int8)
+    forward = np.empty(ne, dtype=np.int8)
     _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward)
     return edges, tri_edges, et, counts, forward
 
@@ -139,8 +155,9 @@ def _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward):
             c = counts[e]
             if c < 2:
                 et[e, c] = k
-            counts[e] = c + 1
-            if t[k, (i + 1) % 3] < t[k, (i + 2) % 3]:
+            if c < COUNT_CAP:
+                counts[e] = c + 1
+            if t[k, (i + 1) % 3] < t[k, (i + 2) % 3] and forward[e] < COUNT_CAP:
                 forward[e] += 1
             tri_edges[k, i] = e
 
@@ -344,3 +361,104 @@ def _add_thirds(t, areas, b):
         w = areas[k] / 3.0
         for i in range(3):
             b[t[k, i]] += w
+
+
+def rectangle_triangles(nx, ny, diagonal):
+    """Triangles (int64, (2 nx ny, 3)) of the structured ``nx`` x ``ny`` rectangle mesh.
+
+    Cells row by row, lower-left corner ``a = j (nx + 1) + i``; cell ``(a, b = a + 1,
+    c = a + nx + 2, d = a + nx + 1)`` is split by its "slash" diagonal a-c into
+    ``(a, b, c), (a, c, d)`` or by its "backslash" diagonal b-d into ``(a, b, d),
+    (b, c, d)``.  ``diagonal``: "right" (all slash), "left" (all backslash) or
+    "symmetric" (slash where ``(2 j + 1 - ny) (2 i + 1 - nx) >= 0``).  Written in
+    place by a kernel over the cell rows (two threads): the NumPy version allocated
+    five (nx ny,) int64 temporaries and an (M, 2, 3) array that ``Mesh`` then copied.
+    """
+    mode = {"right": 0, "left": 1, "symmetric": 2}[diagonal]
+    tris = np.empty((2 * nx * ny, 3), dtype=np.int64)
+    parallel_for(
+        _rectangle_triangles_rows, ny, nx, ny, mode, tris, grain=max(1, GRAIN // max(nx, 1))
+    )
+    return tris
+
+
+@jit
+def _rectangle_triangles_rows(lo, hi, nx, ny, mode, tris):
+    for j in range(lo, hi):
+        yc = (2 * j + 1 - ny) * 1.0
+        for i in range(nx):
+            a = j * (nx + 1) + i
+            c = 2 * (j * nx + i)
+            tris[c, 0] = a
+            tris[c, 1] = a + 1
+            tris[c + 1, 1] = a + (nx + 2)
+            tris[c + 1, 2] = a + (nx + 1)
+            if mode == 0:
+                slash = True
+            elif mode == 1:
+                slash = False
+            else:
+                slash = yc * ((2 * i + 1 - nx) * 1.0) >= 0
+            if slash:
+                tris[c, 2] = a + (nx + 2)
+                tris[c + 1, 0] = a
+            else:
+                tris[c, 2] = a + (nx + 1)
+                tris[c + 1, 0] = a + 1
+
+
+def triangle_checks(vertices, triangles, min_h2, tol2):
+    """Twice the signed areas and squared diameters, with the counts of the cheap checks.
+
+    One pass over the triangles (two threads), the arithmetic of
+    :func:`fastmem.kernels.assembly.area2_and_diameter2` (the same bits), counting on
+    the way the triangles that repeat a vertex, have ``h2 < min_h2``, have
+    ``|area2| <= tol2 * h2`` (degenerate) or ``area2 < 0`` (clockwise): no (M,)
+    masks and temporaries (``Mesh`` forms those only to report an error).
+
+    Returns ``area2``, ``h2`` (float64 (M,)) and ``counts`` (int64 (4,): repeated,
+    small, degenerate, clockwise).
+    """
+    m = triangles.shape[0]
+    area2 = np.empty(m)
+    h2 = np.empty(m)
+    chunks = ranges(m, n_threads(), GRAIN)
+    per_chunk = np.zeros((len(chunks), 4), dtype=np.int64)
+    index = {lo: c for c, (lo, _) in enumerate(chunks)}
+    run_ranges(
+        lambda lo, hi: _triangle_checks_range(
+            lo, hi, vertices, triangles, min_h2, tol2, area2, h2, per_chunk[index[lo]]
+        ),
+        chunks,
+    )
+    return area2, h2, per_chunk.sum(axis=0)
+
+
+@jit
+def _triangle_checks_range(lo, hi, vertices, triangles, min_h2, tol2, area2, h2, counts):
+    n_rep = 0
+    n_small = 0
+    n_degenerate = 0
+    n_cw = 0
+    for k in range(lo, hi):
+        i0, i1, i2 = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+        if i0 == i1 or i1 == i2 or i0 == i2:
+            n_rep += 1
+        x0, y0 = vertices[i0, 0], vertices[i0, 1]
+        ax, ay = vertices[i1, 0] - x0, vertices[i1, 1] - y0
+        bx, by = vertices[i2, 0] - x0, vertices[i2, 1] - y0
+        a2 = ax * by - bx * ay
+        cx, cy = bx - ax, by - ay
+        d2 = max(ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy)
+        area2[k] = a2
+        h2[k] = d2
+        if d2 < min_h2:
+            n_small += 1
+        if abs(a2) <= tol2 * d2:
+            n_degenerate += 1
+        if a2 < 0:
+            n_cw += 1
+    counts[0] = n_rep
+    counts[1] = n_small
+    counts[2] = n_degenerate
+    counts[3] = n_cw
