@@ -41,12 +41,12 @@ COUNT_CAP = 127
 def edge_topology(t, n):
     """Edges, triangle edges and edge triangles of the triangles ``t`` (M, 3) over ``n`` vertices.
 
-    A wrapper around the Numba kernels :func:`_sort_half_edges` (the counting
-    and insertion sorts, which return the number of edges) and
-    :func:`_number_edges` (the five arrays); the arrays are allocated here, so
-    that the kernels compile no allocation code (a cold start compiled 0.5 s of
-    NumPy allocation functions for this one kernel), and the half-edges' lower
-    end points are freed before the edge arrays are allocated.
+    A wrapper around the Numba kernels :func:`_bucket_half_edges` (the counting
+    sort, serial), :func:`_sort_buckets` (the insertion sorts, which count the
+    edges) and :func:`_number_edges` (the five arrays), the last two over vertex
+    ranges in threads (:mod:`._par`; the same arrays for any thread count); the
+    arrays are allocated here, so that the kernels compile no allocation code (a
+    cold start compiled 0.5 s of NumPy allocation functions for this one kernel).
 
     Returns
     -------
@@ -68,29 +68,45 @@ def edge_topology(t, n):
     would otherwise first-touch).
     """
     m = t.shape[0]
-    lo = np.empty(3 * m, dtype=np.int32)
     hi = np.empty(3 * m, dtype=np.int32)
     order = np.empty(3 * m, dtype=np.int32)
     ptr = np.zeros(n + 1, dtype=np.int64)
-    ne = _sort_half_edges(t, lo, hi, ptr, order)
-    del lo
+    _bucket_half_edges(t, hi, ptr, order)
+    # the buckets are independent: sorted and numbered over vertex ranges in threads, each
+    # range's first edge number from the distinct pairs of the ranges before it
+    chunks = ranges(n, n_threads(), GRAIN)
+    distinct = np.zeros(len(chunks), dtype=np.int64)
+    index = {lo: c for c, (lo, _) in enumerate(chunks)}
+
+    def sort(lo, hi_):
+        distinct[index[lo]] = _sort_buckets(lo, hi_, hi, ptr, order)
+
+    run_ranges(sort, chunks)
+    first = np.zeros(len(chunks) + 1, dtype=np.int64)
+    np.cumsum(distinct, out=first[1:])
+    ne = int(first[-1])
     edges = np.empty((ne, 2), dtype=np.int32)
     tri_edges = np.empty((m, 3), dtype=np.int32)
     et = np.empty((ne, 2), dtype=np.int32)
     counts = np.empty(ne, dtype=np.int8)
     forward = np.empty(ne, dtype=np.int8)
-    _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward)
+    run_ranges(
+        lambda lo, hi_: _number_edges(
+            lo, hi_, first[index[lo]], t, hi, ptr, order, edges, tri_edges, et, counts, forward
+        ),
+        chunks,
+    )
     return edges, tri_edges, et, counts, forward
 
 
 @jit
-def _sort_half_edges(t, lo, hi, ptr, order):
-    """Half-edges sorted by ``(lo, hi)``, stable; returns the number of distinct pairs.
+def _bucket_half_edges(t, hi, ptr, order):
+    """Half-edges bucketed by their lower end point (a counting sort, stable).
 
-    Fills ``lo``, ``hi`` (3M,) with the end points of every half-edge, ``ptr``
-    (N + 1,), zero on entry, with the bucket pointer of each lower end point,
-    and ``order`` (3M,) with the half-edges by bucket, each bucket sorted by
-    ``hi`` (ties in the order of ``h``).
+    Fills ``hi`` (3M,) with the higher end point of every half-edge, ``ptr`` (N + 1,),
+    zero on entry, with the bucket pointer of each lower end point, and ``order`` (3M,)
+    with the half-edges by bucket, each bucket in the order of ``h``.  The lower end
+    points are read from ``t`` twice rather than stored (4 bytes per half-edge less).
     """
     m = t.shape[0]
     n = ptr.shape[0] - 1
@@ -98,28 +114,29 @@ def _sort_half_edges(t, lo, hi, ptr, order):
         for i in range(3):
             a = t[k, (i + 1) % 3]
             b = t[k, (i + 2) % 3]
-            h = 3 * k + i
-            if a < b:
-                lo[h] = a
-                hi[h] = b
-            else:
-                lo[h] = b
-                hi[h] = a
+            hi[3 * k + i] = max(a, b)
             ptr[min(a, b) + 1] += 1
     for v in range(n):
         ptr[v + 1] += ptr[v]
-    # counting sort on lo, with ptr[v] as the cursor of bucket v (it ends at ptr[v + 1])
-    for h in range(3 * m):
-        v = lo[h]
-        order[ptr[v]] = h
-        ptr[v] += 1
+    # ptr[v] as the cursor of bucket v (it ends at ptr[v + 1]), then shifted back
+    for k in range(m):
+        for i in range(3):
+            v = min(t[k, (i + 1) % 3], t[k, (i + 2) % 3])
+            order[ptr[v]] = 3 * k + i
+            ptr[v] += 1
     for v in range(n, 0, -1):
         ptr[v] = ptr[v - 1]
     ptr[0] = 0
-    # stable insertion sort by hi inside each bucket (half-edges already in order of h);
-    # a new edge starts where (lo, hi) changes inside a bucket
+
+
+@jit
+def _sort_buckets(lo, hi_end, hi, ptr, order):
+    """Stable insertion sort by ``hi`` inside the buckets ``lo <= v < hi_end``.
+
+    Returns the number of distinct pairs ``(v, hi)`` (edges) of these buckets.
+    """
     ne = 0
-    for v in range(n):
+    for v in range(lo, hi_end):
         for p in range(ptr[v] + 1, ptr[v + 1]):
             h = order[p]
             key = hi[h]
@@ -135,11 +152,14 @@ def _sort_half_edges(t, lo, hi, ptr, order):
 
 
 @jit
-def _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward):
-    """The arrays of :func:`edge_topology` from the sorted half-edges of :func:`_sort_half_edges`."""
-    n = ptr.shape[0] - 1
-    e = -1
-    for v in range(n):
+def _number_edges(lo, hi_end, e0, t, hi, ptr, order, edges, tri_edges, et, counts, forward):
+    """The arrays of :func:`edge_topology` for the buckets ``lo <= v < hi_end``.
+
+    ``e0``: the number of the first edge of bucket ``lo`` (edges of the earlier buckets).
+    Writes only the rows of its own edges and the half-edges of its own buckets.
+    """
+    e = e0 - 1
+    for v in range(lo, hi_end):
         for p in range(ptr[v], ptr[v + 1]):
             h = order[p]
             k = h // 3
