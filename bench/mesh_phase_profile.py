@@ -1,11 +1,22 @@
 """Sub-steps of the scaling benchmark's ``mesh`` phase, in a fresh process per size.
 
-    python bench/mesh_phase_profile.py 1024 2048 4096
+    python bench/mesh_phase_profile.py [--state asis|cold|warm] 1024 2048 4096
 
 Each size runs in its own subprocess (first repetition, which pays the first-touch
 page faults of new memory, as bench.scaling's first repetition does); the kernels are
 loaded on a tiny mesh first.  Every wrapped function reports wall time, user and
 system CPU time and minor page faults (resource.getrusage of the process).
+
+``--state`` controls the memory the fresh process gets.  On this machine (a
+Firecracker VM with virtio-balloon free page reporting) guest memory freed for a
+few seconds is handed back to the host, and touching it again costs ~2 s per GB
+of system time (host faults) instead of ~0.07 s per GB for memory freed just
+before: the phase's time depends on what ran before it.  ``asis``: no control
+(as bench.scaling's workers); ``cold``: the worker first touches and holds
+256 MB blocks until two in a row are slow (it has eaten the recently freed,
+still host-backed memory), so the phase gets memory that must be faulted in
+from the host; ``warm``: a helper process touches and frees 6 GB just before
+the worker, so the phase gets host-backed memory.
 """
 
 import json
@@ -51,8 +62,22 @@ def _hwm():
     return 0.0
 
 
-def worker(n):
+def _eat_warm_memory():
+    """Touch and keep 256 MB blocks until two in a row take > 0.15 s (cold memory)."""
     import numpy as np
+
+    keep, slow = [], 0
+    while slow < 2 and len(keep) < 48:
+        t0 = time.perf_counter()
+        keep.append(np.ones(2**25))
+        slow = slow + 1 if time.perf_counter() - t0 > 0.15 else 0
+    return keep
+
+
+def worker(n, state="asis"):
+    import numpy as np
+
+    ballast = _eat_warm_memory() if state == "cold" else None  # noqa: F841 (held)
 
     import fastmem as fm
     from fastmem import mesh as fmesh
@@ -72,13 +97,12 @@ def worker(n):
         (fm.Mesh, "_init", "Mesh._init"),
         (kt, "edge_topology", "edge_topology"),
         (kt, "_sort_half_edges", "  _sort_half_edges"),
-        (kt, "_bucket_half_edges", "  _bucket_half_edges"),
         (kt, "_number_edges", "  _number_edges"),  # serial before this branch only
         (fm.Mesh, "_set_topology", "  _set_topology"),
         (kt, "vertex_patches", "vertex_patches"),
         (kt, "_fill_patches", "  _fill_patches"),
     ]:
-        if name == "_number_edges" and hasattr(kt, "_bucket_half_edges"):
+        if name == "_number_edges" and hasattr(kt, "_count_edges"):
             continue  # runs in threads here: timed within edge_topology
         if hasattr(owner, name):
             _wrap(owner, name, label)
@@ -93,6 +117,9 @@ def worker(n):
         rows.append([label, *(b - a for a, b in zip(u0, u1)), _hwm() - hwm0, list(STEPS)])
         return out
 
+    import gc
+
+    gc.collect()
     t0 = time.perf_counter()
     mesh = step("Mesh.square", lambda: fm.Mesh.square(n))
     step("edges", lambda: mesh.edges)
@@ -103,11 +130,15 @@ def worker(n):
     print(json.dumps({"n": n, "total": total, "rows": rows}))
 
 
-def main(sizes):
+def main(sizes, state="asis"):
     out = []
     for n in sizes:
+        if state == "warm":
+            subprocess.run(
+                [sys.executable, "-c", "import numpy as np; a = np.ones(6 * 2**27)"], check=True
+            )
         p = subprocess.run(
-            [sys.executable, __file__, "--worker", str(n)],
+            [sys.executable, __file__, "--worker", str(n), state],
             capture_output=True, text=True, check=True,
         )
         out.append(json.loads(p.stdout.strip().splitlines()[-1]))
@@ -129,6 +160,8 @@ def main(sizes):
 
 if __name__ == "__main__":
     if sys.argv[1] == "--worker":
-        worker(int(sys.argv[2]))
+        worker(int(sys.argv[2]), sys.argv[3])
+    elif sys.argv[1] == "--state":
+        main([int(x) for x in sys.argv[3:]], sys.argv[2])
     else:
         main([int(x) for x in sys.argv[1:]])

@@ -77,6 +77,7 @@ from .errors import (
     ParameterError,
     ReadOnlyError,
 )
+from .kernels import _par
 from .kernels import assembly as _ka
 from .kernels import topology as _kt
 from .options import check_memory
@@ -413,7 +414,9 @@ class Mesh:
         if "edges" in self._cache:
             return self._cache
         check_index_limit(self.n_vertices, self.n_triangles)
-        self._set_topology(*_kt.edge_topology(self.triangles, self.n_vertices))
+        # the edges are read from the vertex patches (computed once, kept: assembly uses them)
+        patches = (self.patch_ptr, self.patch_triangles, self.patch_local)
+        self._set_topology(*_kt.edge_topology(self.triangles, self.n_vertices, patches))
         return self._cache
 
     def _set_topology(self, edges, tri_edges, et, counts, fwd_count) -> None:
@@ -504,7 +507,7 @@ class Mesh:
 
     def _patches(self) -> dict:
         if "patch_ptr" not in self._cache:
-            ptr = np.zeros(self.n_vertices + 1, dtype=np.int64)
+            ptr = _par.zeros(self.n_vertices + 1, np.int64)
             # vertex degrees: recounted here (O(M)) rather than kept from __init__ (8 B/vertex)
             np.cumsum(np.bincount(self.triangles.ravel(), minlength=self.n_vertices), out=ptr[1:])
             tris, local = _kt.vertex_patches(self.triangles, ptr)  # a counting sort, O(N + M)
@@ -600,7 +603,7 @@ class Mesh:
         # written in place: no (N,) temporaries of np.tile / np.repeat, and the triangles
         # by a kernel (no (nx ny,) int64 temporaries); both handed to the Mesh without
         # the conversion copies (Mesh._from_owned)
-        vertices = np.empty((ny + 1, nx + 1, 2))
+        vertices = _par.zeros((ny + 1, nx + 1, 2), np.float64)  # first touch: two threads
         vertices[:, :, 0] = xs[None, :]
         vertices[:, :, 1] = ys[:, None]
         vertices = vertices.reshape(-1, 2)

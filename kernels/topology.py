@@ -23,7 +23,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import jit, pjit
-from ._par import GRAIN, n_threads, parallel_for, ranges, run_ranges
+from ._par import GRAIN, n_threads, parallel_for, ranges, run_ranges, zeros
 
 __all__ = [
     "edge_topology",
@@ -38,15 +38,21 @@ __all__ = [
 COUNT_CAP = 127
 
 
-def edge_topology(t, n):
+def edge_topology(t, n, patches=None):
     """Edges, triangle edges and edge triangles of the triangles ``t`` (M, 3) over ``n`` vertices.
 
-    A wrapper around the Numba kernels :func:`_bucket_half_edges` (the counting
-    sort, serial), :func:`_sort_buckets` (the insertion sorts, which count the
-    edges) and :func:`_number_edges` (the five arrays), the last two over vertex
-    ranges in threads (:mod:`._par`; the same arrays for any thread count); the
-    arrays are allocated here, so that the kernels compile no allocation code (a
-    cold start compiled 0.5 s of NumPy allocation functions for this one kernel).
+    The edges of lower end point ``v`` are read from the vertex patch of ``v``
+    (``patches = (patch_ptr, patch_triangles, patch_local)`` of
+    :func:`vertex_patches`, computed here when not given; ``Mesh`` passes its own):
+    the half-edges ``3 k + j`` of its triangles ``k`` (ascending) that leave ``v``
+    towards a higher vertex, insertion-sorted by that vertex.  No half-edge
+    arrays: the former counting sort held 12 bytes per half-edge (1.2 GB at
+    n = 4096, memory first-touched for a temporary).  A wrapper around the Numba
+    kernels :func:`_count_edges` and :func:`_number_edges`, both over vertex
+    ranges in threads (:mod:`._par`; the same arrays for any thread count and
+    split); the arrays are allocated here, so that the kernels compile no
+    allocation code.  ``t`` must not repeat a vertex inside a triangle (``Mesh``
+    refuses such triangles first).
 
     Returns
     -------
@@ -68,20 +74,22 @@ def edge_topology(t, n):
     would otherwise first-touch).
     """
     m = t.shape[0]
-    hi = np.empty(3 * m, dtype=np.int32)
-    order = np.empty(3 * m, dtype=np.int32)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    _bucket_half_edges(t, hi, ptr, order)
-    # the buckets are independent: sorted and numbered over vertex ranges in threads, each
-    # range's first edge number from the distinct pairs of the ranges before it
+    if patches is None:
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(t.ravel(), minlength=n), out=ptr[1:])
+        patches = (ptr, *vertex_patches(t, ptr))
+    ptr, ptris, plocal = patches
     chunks = ranges(n, n_threads(), GRAIN)
-    distinct = np.zeros(len(chunks), dtype=np.int64)
     index = {lo: c for c, (lo, _) in enumerate(chunks)}
+    width = 2 * int(np.diff(ptr).max()) if n else 0  # candidates of one bucket, at most
+    scratch = np.empty((len(chunks), 2, max(width, 1)), dtype=np.int64)
+    distinct = np.zeros(len(chunks), dtype=np.int64)
 
-    def sort(lo, hi_):
-        distinct[index[lo]] = _sort_buckets(lo, hi_, hi, ptr, order)
+    def count(lo, hi):
+        c = index[lo]
+        distinct[c] = _count_edges(lo, hi, t, ptr, ptris, plocal, scratch[c, 0], scratch[c, 1])
 
-    run_ranges(sort, chunks)
+    run_ranges(count, chunks)
     first = np.zeros(len(chunks) + 1, dtype=np.int64)
     np.cumsum(distinct, out=first[1:])
     ne = int(first[-1])
@@ -90,69 +98,66 @@ def edge_topology(t, n):
     et = np.empty((ne, 2), dtype=np.int32)
     counts = np.empty(ne, dtype=np.int8)
     forward = np.empty(ne, dtype=np.int8)
-    run_ranges(
-        lambda lo, hi_: _number_edges(
-            lo, hi_, first[index[lo]], t, hi, ptr, order, edges, tri_edges, et, counts, forward
-        ),
-        chunks,
-    )
+
+    def number(lo, hi):
+        c = index[lo]
+        _number_edges(
+            lo, hi, first[c], t, ptr, ptris, plocal, scratch[c, 0], scratch[c, 1],
+            edges, tri_edges, et, counts, forward,
+        )
+
+    run_ranges(number, chunks)
     return edges, tri_edges, et, counts, forward
 
 
 @jit
-def _bucket_half_edges(t, hi, ptr, order):
-    """Half-edges bucketed by their lower end point (a counting sort, stable).
+def _bucket(v, t, ptr, ptris, plocal, w, h):
+    """The half-edges leaving ``v`` towards a higher vertex, sorted by (that vertex, h).
 
-    Fills ``hi`` (3M,) with the higher end point of every half-edge, ``ptr`` (N + 1,),
-    zero on entry, with the bucket pointer of each lower end point, and ``order`` (3M,)
-    with the half-edges by bucket, each bucket in the order of ``h``.  The lower end
-    points are read from ``t`` twice rather than stored (4 bytes per half-edge less).
+    Fills ``w`` (end points) and ``h`` (half-edges ``3 k + j``) and returns their
+    number.  The patch lists its triangles ascending, so the candidates come in
+    ascending ``h``; the insertion sort by ``w`` is stable.
     """
-    m = t.shape[0]
-    n = ptr.shape[0] - 1
-    for k in range(m):
-        for i in range(3):
-            a = t[k, (i + 1) % 3]
-            b = t[k, (i + 2) % 3]
-            hi[3 * k + i] = max(a, b)
-            ptr[min(a, b) + 1] += 1
-    for v in range(n):
-        ptr[v + 1] += ptr[v]
-    # ptr[v] as the cursor of bucket v (it ends at ptr[v + 1]), then shifted back
-    for k in range(m):
-        for i in range(3):
-            v = min(t[k, (i + 1) % 3], t[k, (i + 2) % 3])
-            order[ptr[v]] = 3 * k + i
-            ptr[v] += 1
-    for v in range(n, 0, -1):
-        ptr[v] = ptr[v - 1]
-    ptr[0] = 0
+    nc = 0
+    for p in range(ptr[v], ptr[v + 1]):
+        k = ptris[p]
+        i = plocal[p]
+        # the two local edges j != i of triangle k contain v (local edge j joins the two
+        # local vertices other than j: i and 3 - i - j), in ascending j
+        j1 = 1 if i == 0 else 0
+        j2 = 1 if i == 2 else 2
+        for j in (j1, j2):
+            b = t[k, 3 - i - j]
+            if b > v:
+                key = b
+                hh = 3 * k + j
+                q = nc - 1
+                while q >= 0 and w[q] > key:
+                    w[q + 1] = w[q]
+                    h[q + 1] = h[q]
+                    q -= 1
+                w[q + 1] = key
+                h[q + 1] = hh
+                nc += 1
+    return nc
 
 
 @jit
-def _sort_buckets(lo, hi_end, hi, ptr, order):
-    """Stable insertion sort by ``hi`` inside the buckets ``lo <= v < hi_end``.
-
-    Returns the number of distinct pairs ``(v, hi)`` (edges) of these buckets.
-    """
+def _count_edges(lo, hi_end, t, ptr, ptris, plocal, w, h):
+    """The number of distinct pairs ``(v, w)``, ``w > v``, of the buckets ``lo <= v < hi_end``."""
     ne = 0
     for v in range(lo, hi_end):
-        for p in range(ptr[v] + 1, ptr[v + 1]):
-            h = order[p]
-            key = hi[h]
-            q = p - 1
-            while q >= ptr[v] and hi[order[q]] > key:
-                order[q + 1] = order[q]
-                q -= 1
-            order[q + 1] = h
-        for p in range(ptr[v], ptr[v + 1]):
-            if p == ptr[v] or hi[order[p]] != hi[order[p - 1]]:
+        nc = _bucket(v, t, ptr, ptris, plocal, w, h)
+        for q in range(nc):
+            if q == 0 or w[q] != w[q - 1]:
                 ne += 1
     return ne
 
 
 @jit
-def _number_edges(lo, hi_end, e0, t, hi, ptr, order, edges, tri_edges, et, counts, forward):
+def _number_edges(
+    lo, hi_end, e0, t, ptr, ptris, plocal, w, h, edges, tri_edges, et, counts, forward
+):
     """The arrays of :func:`edge_topology` for the buckets ``lo <= v < hi_end``.
 
     ``e0``: the number of the first edge of bucket ``lo`` (edges of the earlier buckets).
@@ -160,14 +165,15 @@ def _number_edges(lo, hi_end, e0, t, hi, ptr, order, edges, tri_edges, et, count
     """
     e = e0 - 1
     for v in range(lo, hi_end):
-        for p in range(ptr[v], ptr[v + 1]):
-            h = order[p]
-            k = h // 3
-            i = h - 3 * k
-            if p == ptr[v] or hi[h] != hi[order[p - 1]]:
+        nc = _bucket(v, t, ptr, ptris, plocal, w, h)
+        for q in range(nc):
+            hh = h[q]
+            k = hh // 3
+            i = hh - 3 * k
+            if q == 0 or w[q] != w[q - 1]:
                 e += 1
                 edges[e, 0] = v
-                edges[e, 1] = hi[h]
+                edges[e, 1] = w[q]
                 et[e, 0] = -1
                 et[e, 1] = -1
                 counts[e] = 0
@@ -345,8 +351,8 @@ def vertex_patches(t, ptr):
     A wrapper around the Numba kernel :func:`_fill_patches` (arrays allocated here).
     """
     m = t.shape[0]
-    tris = np.empty(3 * m, dtype=np.int32)
-    local = np.empty(3 * m, dtype=np.int8)
+    tris = zeros(3 * m, np.int32)  # first touched by two threads (_par.zeros)
+    local = zeros(3 * m, np.int8)
     _fill_patches(t, ptr[:-1].copy(), tris, local)
     return tris, local
 
