@@ -273,9 +273,8 @@ class Mesh:
         self._grid = None  # (nx, ny, x0, x1, y0, y1): vertices on this grid (generators)
 
         # the cheap checks in one pass (kernel): counts only, masks formed to report
-        area2, h2, bad = _kt.triangle_checks(
-            v, t, _MIN_DIAMETER**2, 2.0 * _DEGENERATE_TOL
-        )
+        used = np.zeros(v.shape[0], dtype=np.uint8)
+        area2, h2, bad = _kt.triangle_checks(v, t, _MIN_DIAMETER**2, 2.0 * _DEGENERATE_TOL, used)
         n_rep, n_small, n_degenerate, n_cw = (int(c) for c in bad)
         # Repeated vertex inside one triangle.
         if n_rep:
@@ -313,9 +312,8 @@ class Mesh:
             t = t.copy()
             t[cw, 1], t[cw, 2] = t[cw, 2].copy(), t[cw, 1].copy()
             np.abs(area2, out=area2)
-        counts = np.bincount(t.ravel(), minlength=v.shape[0])
-        if (counts == 0).any():
-            unused = np.flatnonzero(counts == 0)
+        if not used.all():  # marked by triangle_checks: 1 byte per vertex, no bincount
+            unused = np.flatnonzero(used == 0)
             raise MeshError(
                 f"unused vertices: {unused.size} vertices belong to no triangle "
                 f"(first: vertex {unused[0]}); remove them or use Mesh.read, which compacts"

@@ -433,7 +433,7 @@ def _rectangle_triangles_rows(lo, hi, nx, ny, mode, tris):
                 tris[c + 1, 0] = a + 1
 
 
-def triangle_checks(vertices, triangles, min_h2, tol2):
+def triangle_checks(vertices, triangles, min_h2, tol2, used=None):
     """Twice the signed areas and squared diameters, with the counts of the cheap checks.
 
     One pass over the triangles (two threads), the arithmetic of
@@ -443,8 +443,12 @@ def triangle_checks(vertices, triangles, min_h2, tol2):
     masks and temporaries (``Mesh`` forms those only to report an error).
 
     Returns ``area2``, ``h2`` (float64 (M,)) and ``counts`` (int64 (4,): repeated,
-    small, degenerate, clockwise).
+    small, degenerate, clockwise).  ``used`` (uint8 (N,), zero on entry), if given, is
+    set to 1 at every vertex of a triangle (the unused-vertex check; the threads may
+    write the same byte, always the value 1).
     """
+    if used is None:
+        used = np.zeros(vertices.shape[0], dtype=np.uint8)
     m = triangles.shape[0]
     area2 = np.empty(m)
     h2 = np.empty(m)
@@ -453,7 +457,7 @@ def triangle_checks(vertices, triangles, min_h2, tol2):
     index = {lo: c for c, (lo, _) in enumerate(chunks)}
     run_ranges(
         lambda lo, hi: _triangle_checks_range(
-            lo, hi, vertices, triangles, min_h2, tol2, area2, h2, per_chunk[index[lo]]
+            lo, hi, vertices, triangles, min_h2, tol2, area2, h2, per_chunk[index[lo]], used
         ),
         chunks,
     )
@@ -461,7 +465,7 @@ def triangle_checks(vertices, triangles, min_h2, tol2):
 
 
 @jit
-def _triangle_checks_range(lo, hi, vertices, triangles, min_h2, tol2, area2, h2, counts):
+def _triangle_checks_range(lo, hi, vertices, triangles, min_h2, tol2, area2, h2, counts, used):
     n_rep = 0
     n_small = 0
     n_degenerate = 0
@@ -470,6 +474,9 @@ def _triangle_checks_range(lo, hi, vertices, triangles, min_h2, tol2, area2, h2,
         i0, i1, i2 = triangles[k, 0], triangles[k, 1], triangles[k, 2]
         if i0 == i1 or i1 == i2 or i0 == i2:
             n_rep += 1
+        used[i0] = 1
+        used[i1] = 1
+        used[i2] = 1
         x0, y0 = vertices[i0, 0], vertices[i0, 1]
         ax, ay = vertices[i1, 0] - x0, vertices[i1, 1] - y0
         bx, by = vertices[i2, 0] - x0, vertices[i2, 1] - y0

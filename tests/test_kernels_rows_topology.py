@@ -144,7 +144,9 @@ def test_triangle_checks_match_numpy():
     v[299] = 0.5 * (v[297] + v[298])  # a collinear triangle
     t[7] = [297, 298, 299]
     tol2 = 2.0 * 1e-13
-    area2, h2, counts = triangle_checks(v, t, 1e-100, tol2)
+    used = np.zeros(301, dtype=np.uint8)
+    area2, h2, counts = triangle_checks(v, t, 1e-100, tol2, used)
+    np.testing.assert_array_equal(used, np.bincount(t.ravel(), minlength=301) > 0)
     a_ref, h_ref = area2_and_diameter2(v, t)
     assert area2.tobytes() == a_ref.tobytes() and h2.tobytes() == h_ref.tobytes()
     rep = (t[:, 0] == t[:, 1]) | (t[:, 1] == t[:, 2]) | (t[:, 0] == t[:, 2])
@@ -166,3 +168,9 @@ def test_row_measures_match_numpy():
         gap, li = u1[interior] - u2[interior], lam[interior]
         assert changed == np.count_nonzero((li > c * gap) != active)
         assert comp_sq == pytest.approx(np.sum(np.minimum(gap, li) ** 2), rel=1e-13)
+
+
+def test_mesh_refuses_unused_vertices_marked_by_the_check_kernel():
+    v = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [5.0, 5.0], [1.0, 1.0]])
+    with pytest.raises(fm.errors.MeshError, match=r"unused vertices: 1 vertices .*vertex 3"):
+        fm.Mesh(v, [[0, 1, 2], [1, 4, 2]])
