@@ -31,6 +31,7 @@ __all__ = [
     "rectangle_triangles",
     "refined_edge_topology",
     "triangle_checks",
+    "vertex_patch_ptr",
     "vertex_patches",
 ]
 
@@ -75,8 +76,7 @@ def edge_topology(t, n, patches=None):
     """
     m = t.shape[0]
     if patches is None:
-        ptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(t.ravel(), minlength=n), out=ptr[1:])
+        ptr = vertex_patch_ptr(t, n)
         patches = (ptr, *vertex_patches(t, ptr))
     ptr, ptris, plocal = patches
     chunks = ranges(n, n_threads(), GRAIN)
@@ -339,6 +339,28 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
     if bad:
         raise ValueError("an old edge that was not bisected is in no child of its triangles")
     return edges, tri_edges, et, counts, forward
+
+
+def vertex_patch_ptr(t, n):
+    """CSR pointer (int64, (n + 1,)) of the vertex patches: the prefix sum of the degrees.
+
+    The same values as ``np.cumsum(np.bincount(t.ravel(), minlength=n))`` after a 0.
+    The degrees are counted by a kernel into an array first touched by two threads
+    (:func:`._par.zeros`): ``np.bincount`` counts into calloc'ed memory, and its
+    read-then-write first touch of each page cost 2 s of system time for the 134 MB
+    of n = 4096 (memory the host had taken back, faulted in page by page).
+    """
+    ptr = zeros(n + 1, np.int64)
+    _count_degrees(t, ptr[1:])
+    np.cumsum(ptr[1:], out=ptr[1:])
+    return ptr
+
+
+@jit
+def _count_degrees(t, deg):
+    for k in range(t.shape[0]):
+        for i in range(3):
+            deg[t[k, i]] += 1
 
 
 def vertex_patches(t, ptr):

@@ -174,3 +174,14 @@ def test_mesh_refuses_unused_vertices_marked_by_the_check_kernel():
     v = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [5.0, 5.0], [1.0, 1.0]])
     with pytest.raises(fm.errors.MeshError, match=r"unused vertices: 1 vertices .*vertex 3"):
         fm.Mesh(v, [[0, 1, 2], [1, 4, 2]])
+
+
+@pytest.mark.parametrize("mesh", _meshes(), ids=["square", "lshape", "red", "nvb", "permuted"])
+def test_vertex_patch_ptr_matches_bincount(mesh):
+    from fastmem.kernels.topology import vertex_patch_ptr
+
+    t = np.asarray(mesh.triangles)
+    got = vertex_patch_ptr(t, mesh.n_vertices)
+    want = np.r_[0, np.cumsum(np.bincount(t.ravel(), minlength=mesh.n_vertices))]
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, want)
