@@ -9,8 +9,8 @@ by a counting sort on ``lo`` (O(N + M)) and an insertion sort by ``hi`` inside
 each vertex's bucket (a vertex's degree), instead of an O(M log M) sort and a
 dozen passes over (3M,) arrays.
 
-Index dtypes: the half-edge arrays of the pass and the returned ``edges``,
-``counts`` and ``forward`` are int32 (half the memory of int64: the pass holds
+Index dtypes: the half-edge arrays of the pass and the returned ``edges``
+are int32 (``counts`` and ``forward``: int8, saturated) (half the memory of int64: the pass holds
 12 bytes per half-edge, about 72 per vertex, the retained ``edges`` 24 instead
 of 48), and so are ``tri_edges`` and ``edge_triangles`` (24 instead of 48 bytes per
 vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
@@ -23,19 +23,37 @@ import numpy as np
 from numba import prange
 
 from ._jit import jit, pjit
+from ._par import GRAIN, n_threads, parallel_for, ranges, run_ranges, zeros
 
-__all__ = ["edge_topology", "lumped_mass", "refined_edge_topology", "vertex_patches"]
+__all__ = [
+    "edge_topology",
+    "lumped_mass",
+    "rectangle_triangles",
+    "refined_edge_topology",
+    "triangle_checks",
+    "vertex_patch_ptr",
+    "vertex_patches",
+]
+
+#: saturation value of the int8 ``counts`` and ``forward`` of :func:`edge_topology`
+COUNT_CAP = 127
 
 
-def edge_topology(t, n):
+def edge_topology(t, n, patches=None):
     """Edges, triangle edges and edge triangles of the triangles ``t`` (M, 3) over ``n`` vertices.
 
-    A wrapper around the Numba kernels :func:`_sort_half_edges` (the counting
-    and insertion sorts, which return the number of edges) and
-    :func:`_number_edges` (the five arrays); the arrays are allocated here, so
-    that the kernels compile no allocation code (a cold start compiled 0.5 s of
-    NumPy allocation functions for this one kernel), and the half-edges' lower
-    end points are freed before the edge arrays are allocated.
+    The edges of lower end point ``v`` are read from the vertex patch of ``v``
+    (``patches = (patch_ptr, patch_triangles, patch_local)`` of
+    :func:`vertex_patches`, computed here when not given; ``Mesh`` passes its own):
+    the half-edges ``3 k + j`` of its triangles ``k`` (ascending) that leave ``v``
+    towards a higher vertex, insertion-sorted by that vertex.  No half-edge
+    arrays: the former counting sort held 12 bytes per half-edge (1.2 GB at
+    n = 4096, memory first-touched for a temporary).  A wrapper around the Numba
+    kernels :func:`_count_edges` and :func:`_number_edges`, both over vertex
+    ranges in threads (:mod:`._par`; the same arrays for any thread count and
+    split); the arrays are allocated here, so that the kernels compile no
+    allocation code.  ``t`` must not repeat a vertex inside a triangle (``Mesh``
+    refuses such triangles first).
 
     Returns
     -------
@@ -47,91 +65,115 @@ def edge_topology(t, n):
         The first two triangles of each edge in half-edge order (-1: none).
     counts : int32 (E,)
         Triangles per edge (1 on the boundary, 2 inside; more is non-manifold).
-    forward : int32 (E,)
+    forward : int8 (E,)
         Half-edges of the edge that run from ``lo`` to ``hi`` (an interior edge
         of a consistently oriented mesh has exactly one).
+
+    ``counts`` and ``forward`` are int8, saturated at :data:`COUNT_CAP` (they only feed
+    the checks of ``Mesh._set_topology``, which recounts an offending edge exactly):
+    3 bytes per edge less than int32 (150 MB at n = 4096, memory the mesh phase
+    would otherwise first-touch).
     """
     m = t.shape[0]
-    lo = np.empty(3 * m, dtype=np.int32)
-    hi = np.empty(3 * m, dtype=np.int32)
-    order = np.empty(3 * m, dtype=np.int32)
-    ptr = np.zeros(n + 1, dtype=np.int64)
-    ne = _sort_half_edges(t, lo, hi, ptr, order)
-    del lo
+    if patches is None:
+        ptr = vertex_patch_ptr(t, n)
+        patches = (ptr, *vertex_patches(t, ptr))
+    ptr, ptris, plocal = patches
+    chunks = ranges(n, n_threads(), GRAIN)
+    index = {lo: c for c, (lo, _) in enumerate(chunks)}
+    width = 2 * int(np.diff(ptr).max()) if n else 0  # candidates of one bucket, at most
+    scratch = np.empty((len(chunks), 2, max(width, 1)), dtype=np.int64)
+    distinct = np.zeros(len(chunks), dtype=np.int64)
+
+    def count(lo, hi):
+        c = index[lo]
+        distinct[c] = _count_edges(lo, hi, t, ptr, ptris, plocal, scratch[c, 0], scratch[c, 1])
+
+    run_ranges(count, chunks)
+    first = np.zeros(len(chunks) + 1, dtype=np.int64)
+    np.cumsum(distinct, out=first[1:])
+    ne = int(first[-1])
     edges = np.empty((ne, 2), dtype=np.int32)
     tri_edges = np.empty((m, 3), dtype=np.int32)
     et = np.empty((ne, 2), dtype=np.int32)
-    counts = np.empty(ne, dtype=np.int32)
-    forward = np.empty(ne, dtype=np.int32)
-    _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward)
+    counts = np.empty(ne, dtype=np.int8)
+    forward = np.empty(ne, dtype=np.int8)
+
+    def number(lo, hi):
+        c = index[lo]
+        _number_edges(
+            lo, hi, first[c], t, ptr, ptris, plocal, scratch[c, 0], scratch[c, 1],
+            edges, tri_edges, et, counts, forward,
+        )
+
+    run_ranges(number, chunks)
     return edges, tri_edges, et, counts, forward
 
 
 @jit
-def _sort_half_edges(t, lo, hi, ptr, order):
-    """Half-edges sorted by ``(lo, hi)``, stable; returns the number of distinct pairs.
+def _bucket(v, t, ptr, ptris, plocal, w, h):
+    """The half-edges leaving ``v`` towards a higher vertex, sorted by (that vertex, h).
 
-    Fills ``lo``, ``hi`` (3M,) with the end points of every half-edge, ``ptr``
-    (N + 1,), zero on entry, with the bucket pointer of each lower end point,
-    and ``order`` (3M,) with the half-edges by bucket, each bucket sorted by
-    ``hi`` (ties in the order of ``h``).
+    Fills ``w`` (end points) and ``h`` (half-edges ``3 k + j``) and returns their
+    number.  The patch lists its triangles ascending, so the candidates come in
+    ascending ``h``; the insertion sort by ``w`` is stable.
     """
-    m = t.shape[0]
-    n = ptr.shape[0] - 1
-    for k in range(m):
-        for i in range(3):
-            a = t[k, (i + 1) % 3]
-            b = t[k, (i + 2) % 3]
-            h = 3 * k + i
-            if a < b:
-                lo[h] = a
-                hi[h] = b
-            else:
-                lo[h] = b
-                hi[h] = a
-            ptr[min(a, b) + 1] += 1
-    for v in range(n):
-        ptr[v + 1] += ptr[v]
-    # counting sort on lo, with ptr[v] as the cursor of bucket v (it ends at ptr[v + 1])
-    for h in range(3 * m):
-        v = lo[h]
-        order[ptr[v]] = h
-        ptr[v] += 1
-    for v in range(n, 0, -1):
-        ptr[v] = ptr[v - 1]
-    ptr[0] = 0
-    # stable insertion sort by hi inside each bucket (half-edges already in order of h);
-    # a new edge starts where (lo, hi) changes inside a bucket
+    nc = 0
+    for p in range(ptr[v], ptr[v + 1]):
+        k = ptris[p]
+        i = plocal[p]
+        # the two local edges j != i of triangle k contain v (local edge j joins the two
+        # local vertices other than j: i and 3 - i - j), in ascending j
+        j1 = 1 if i == 0 else 0
+        j2 = 1 if i == 2 else 2
+        for j in (j1, j2):
+            b = t[k, 3 - i - j]
+            if b > v:
+                key = b
+                hh = 3 * k + j
+                q = nc - 1
+                while q >= 0 and w[q] > key:
+                    w[q + 1] = w[q]
+                    h[q + 1] = h[q]
+                    q -= 1
+                w[q + 1] = key
+                h[q + 1] = hh
+                nc += 1
+    return nc
+
+
+@jit
+def _count_edges(lo, hi_end, t, ptr, ptris, plocal, w, h):
+    """The number of distinct pairs ``(v, w)``, ``w > v``, of the buckets ``lo <= v < hi_end``."""
     ne = 0
-    for v in range(n):
-        for p in range(ptr[v] + 1, ptr[v + 1]):
-            h = order[p]
-            key = hi[h]
-            q = p - 1
-            while q >= ptr[v] and hi[order[q]] > key:
-                order[q + 1] = order[q]
-                q -= 1
-            order[q + 1] = h
-        for p in range(ptr[v], ptr[v + 1]):
-            if p == ptr[v] or hi[order[p]] != hi[order[p - 1]]:
+    for v in range(lo, hi_end):
+        nc = _bucket(v, t, ptr, ptris, plocal, w, h)
+        for q in range(nc):
+            if q == 0 or w[q] != w[q - 1]:
                 ne += 1
     return ne
 
 
 @jit
-def _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward):
-    """The arrays of :func:`edge_topology` from the sorted half-edges of :func:`_sort_half_edges`."""
-    n = ptr.shape[0] - 1
-    e = -1
-    for v in range(n):
-        for p in range(ptr[v], ptr[v + 1]):
-            h = order[p]
-            k = h // 3
-            i = h - 3 * k
-            if p == ptr[v] or hi[h] != hi[order[p - 1]]:
+def _number_edges(
+    lo, hi_end, e0, t, ptr, ptris, plocal, w, h, edges, tri_edges, et, counts, forward
+):
+    """The arrays of :func:`edge_topology` for the buckets ``lo <= v < hi_end``.
+
+    ``e0``: the number of the first edge of bucket ``lo`` (edges of the earlier buckets).
+    Writes only the rows of its own edges and the half-edges of its own buckets.
+    """
+    e = e0 - 1
+    for v in range(lo, hi_end):
+        nc = _bucket(v, t, ptr, ptris, plocal, w, h)
+        for q in range(nc):
+            hh = h[q]
+            k = hh // 3
+            i = hh - 3 * k
+            if q == 0 or w[q] != w[q - 1]:
                 e += 1
                 edges[e, 0] = v
-                edges[e, 1] = hi[h]
+                edges[e, 1] = w[q]
                 et[e, 0] = -1
                 et[e, 1] = -1
                 counts[e] = 0
@@ -139,8 +181,9 @@ def _number_edges(t, hi, ptr, order, edges, tri_edges, et, counts, forward):
             c = counts[e]
             if c < 2:
                 et[e, c] = k
-            counts[e] = c + 1
-            if t[k, (i + 1) % 3] < t[k, (i + 2) % 3]:
+            if c < COUNT_CAP:
+                counts[e] = c + 1
+            if t[k, (i + 1) % 3] < t[k, (i + 2) % 3] and forward[e] < COUNT_CAP:
                 forward[e] += 1
             tri_edges[k, i] = e
 
@@ -298,6 +341,28 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
     return edges, tri_edges, et, counts, forward
 
 
+def vertex_patch_ptr(t, n):
+    """CSR pointer (int64, (n + 1,)) of the vertex patches: the prefix sum of the degrees.
+
+    The same values as ``np.cumsum(np.bincount(t.ravel(), minlength=n))`` after a 0.
+    The degrees are counted by a kernel into an array first touched by two threads
+    (:func:`._par.zeros`): ``np.bincount`` counts into calloc'ed memory, and its
+    read-then-write first touch of each page cost 2 s of system time for the 134 MB
+    of n = 4096 (memory the host had taken back, faulted in page by page).
+    """
+    ptr = zeros(n + 1, np.int64)
+    _count_degrees(t, ptr[1:])
+    np.cumsum(ptr[1:], out=ptr[1:])
+    return ptr
+
+
+@jit
+def _count_degrees(t, deg):
+    for k in range(t.shape[0]):
+        for i in range(3):
+            deg[t[k, i]] += 1
+
+
 def vertex_patches(t, ptr):
     """Patch arrays in CSR form: the half-edges ``3 k + i`` of each vertex ``t[k, i]``.
 
@@ -308,8 +373,8 @@ def vertex_patches(t, ptr):
     A wrapper around the Numba kernel :func:`_fill_patches` (arrays allocated here).
     """
     m = t.shape[0]
-    tris = np.empty(3 * m, dtype=np.int32)
-    local = np.empty(3 * m, dtype=np.int8)
+    tris = zeros(3 * m, np.int32)  # first touched by two threads (_par.zeros)
+    local = zeros(3 * m, np.int8)
     _fill_patches(t, ptr[:-1].copy(), tris, local)
     return tris, local
 
@@ -344,3 +409,111 @@ def _add_thirds(t, areas, b):
         w = areas[k] / 3.0
         for i in range(3):
             b[t[k, i]] += w
+
+
+def rectangle_triangles(nx, ny, diagonal):
+    """Triangles (int64, (2 nx ny, 3)) of the structured ``nx`` x ``ny`` rectangle mesh.
+
+    Cells row by row, lower-left corner ``a = j (nx + 1) + i``; cell ``(a, b = a + 1,
+    c = a + nx + 2, d = a + nx + 1)`` is split by its "slash" diagonal a-c into
+    ``(a, b, c), (a, c, d)`` or by its "backslash" diagonal b-d into ``(a, b, d),
+    (b, c, d)``.  ``diagonal``: "right" (all slash), "left" (all backslash) or
+    "symmetric" (slash where ``(2 j + 1 - ny) (2 i + 1 - nx) >= 0``).  Written in
+    place by a kernel over the cell rows (two threads): the NumPy version allocated
+    five (nx ny,) int64 temporaries and an (M, 2, 3) array that ``Mesh`` then copied.
+    """
+    mode = {"right": 0, "left": 1, "symmetric": 2}[diagonal]
+    tris = np.empty((2 * nx * ny, 3), dtype=np.int64)
+    parallel_for(
+        _rectangle_triangles_rows, ny, nx, ny, mode, tris, grain=max(1, GRAIN // max(nx, 1))
+    )
+    return tris
+
+
+@jit
+def _rectangle_triangles_rows(lo, hi, nx, ny, mode, tris):
+    for j in range(lo, hi):
+        yc = (2 * j + 1 - ny) * 1.0
+        for i in range(nx):
+            a = j * (nx + 1) + i
+            c = 2 * (j * nx + i)
+            tris[c, 0] = a
+            tris[c, 1] = a + 1
+            tris[c + 1, 1] = a + (nx + 2)
+            tris[c + 1, 2] = a + (nx + 1)
+            if mode == 0:
+                slash = True
+            elif mode == 1:
+                slash = False
+            else:
+                slash = yc * ((2 * i + 1 - nx) * 1.0) >= 0
+            if slash:
+                tris[c, 2] = a + (nx + 2)
+                tris[c + 1, 0] = a
+            else:
+                tris[c, 2] = a + (nx + 1)
+                tris[c + 1, 0] = a + 1
+
+
+def triangle_checks(vertices, triangles, min_h2, tol2, used=None):
+    """Twice the signed areas and squared diameters, with the counts of the cheap checks.
+
+    One pass over the triangles (two threads), the arithmetic of
+    :func:`fastmem.kernels.assembly.area2_and_diameter2` (the same bits), counting on
+    the way the triangles that repeat a vertex, have ``h2 < min_h2``, have
+    ``|area2| <= tol2 * h2`` (degenerate) or ``area2 < 0`` (clockwise): no (M,)
+    masks and temporaries (``Mesh`` forms those only to report an error).
+
+    Returns ``area2``, ``h2`` (float64 (M,)) and ``counts`` (int64 (4,): repeated,
+    small, degenerate, clockwise).  ``used`` (uint8 (N,), zero on entry), if given, is
+    set to 1 at every vertex of a triangle (the unused-vertex check; the threads may
+    write the same byte, always the value 1).
+    """
+    if used is None:
+        used = np.zeros(vertices.shape[0], dtype=np.uint8)
+    m = triangles.shape[0]
+    area2 = np.empty(m)
+    h2 = np.empty(m)
+    chunks = ranges(m, n_threads(), GRAIN)
+    per_chunk = np.zeros((len(chunks), 4), dtype=np.int64)
+    index = {lo: c for c, (lo, _) in enumerate(chunks)}
+    run_ranges(
+        lambda lo, hi: _triangle_checks_range(
+            lo, hi, vertices, triangles, min_h2, tol2, area2, h2, per_chunk[index[lo]], used
+        ),
+        chunks,
+    )
+    return area2, h2, per_chunk.sum(axis=0)
+
+
+@jit
+def _triangle_checks_range(lo, hi, vertices, triangles, min_h2, tol2, area2, h2, counts, used):
+    n_rep = 0
+    n_small = 0
+    n_degenerate = 0
+    n_cw = 0
+    for k in range(lo, hi):
+        i0, i1, i2 = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+        if i0 == i1 or i1 == i2 or i0 == i2:
+            n_rep += 1
+        used[i0] = 1
+        used[i1] = 1
+        used[i2] = 1
+        x0, y0 = vertices[i0, 0], vertices[i0, 1]
+        ax, ay = vertices[i1, 0] - x0, vertices[i1, 1] - y0
+        bx, by = vertices[i2, 0] - x0, vertices[i2, 1] - y0
+        a2 = ax * by - bx * ay
+        cx, cy = bx - ax, by - ay
+        d2 = max(ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy)
+        area2[k] = a2
+        h2[k] = d2
+        if d2 < min_h2:
+            n_small += 1
+        if abs(a2) <= tol2 * d2:
+            n_degenerate += 1
+        if a2 < 0:
+            n_cw += 1
+    counts[0] = n_rep
+    counts[1] = n_small
+    counts[2] = n_degenerate
+    counts[3] = n_cw
