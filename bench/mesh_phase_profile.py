@@ -1,6 +1,6 @@
 """Sub-steps of the scaling benchmark's ``mesh`` phase, in a fresh process per size.
 
-    python bench/mesh_phase_profile.py [--state asis|cold|warm] 1024 2048 4096
+    python -m bench.mesh_phase_profile [--quick] [--state asis|cold|warm] [--sizes 1024 2048 4096]
 
 Each size runs in its own subprocess (first repetition, which pays the first-touch
 page faults of new memory, as bench.scaling's first repetition does); the kernels are
@@ -20,6 +20,7 @@ the worker, so the phase gets host-backed memory.
 """
 
 import json
+import math
 import resource
 import subprocess
 import sys
@@ -45,7 +46,7 @@ def _wrap(owner, name, label):
         finally:
             _STACK.pop()
             u1 = _usage()
-            STEPS.append((depth, label, *(b - a_ for a_, b in zip(u0, u1))))
+            STEPS.append((depth, label, *(b - a_ for a_, b in zip(u0, u1, strict=False))))
 
     setattr(owner, name, wrapped)
 
@@ -79,10 +80,11 @@ def worker(n, state="asis"):
 
     ballast = _eat_warm_memory() if state == "cold" else []  # held during the phase
 
-    import fastmem as fm
-    from fastmem import mesh as fmesh
     from fastmem.kernels import assembly as ka
     from fastmem.kernels import topology as kt
+
+    import fastmem as fm
+    from fastmem import mesh as fmesh
 
     m = fm.Mesh.square(8)
     _ = m.edges, m.triangle_edges, m.patch_ptr, m.interior_vertices
@@ -114,7 +116,9 @@ def worker(n, state="asis"):
         u0 = _usage()
         out = fn()
         u1 = _usage()
-        rows.append([label, *(b - a for a, b in zip(u0, u1)), _hwm() - hwm0, list(STEPS)])
+        rows.append(
+            [label, *(b - a for a, b in zip(u0, u1, strict=False)), _hwm() - hwm0, list(STEPS)]
+        )
         return out
 
     import gc
@@ -130,7 +134,8 @@ def worker(n, state="asis"):
     print(json.dumps({"n": n, "total": total, "rows": rows, "ballast_blocks": len(ballast)}))
 
 
-def main(sizes, state="asis"):
+def measure(sizes, state="asis"):
+    """One fresh worker process per size; returns their rows."""
     out = []
     for n in sizes:
         if state == "warm":
@@ -143,26 +148,48 @@ def main(sizes, state="asis"):
         if p.returncode:
             sys.exit(p.stderr)
         out.append(json.loads(p.stdout.strip().splitlines()[-1]))
+    return out
+
+
+def show(out):
+    """Print the sub-steps of every size and the pairwise exponents."""
     for r in out:
         print(f"n = {r['n']}: phase {r['total']:.3f} s (ballast {r['ballast_blocks']} x 256 MB)")
-        print(f"  {'step':34s} {'wall':>7s} {'user':>7s} {'sys':>7s} {'minflt':>9s} {'+HWM MB':>8s}")
+        print(
+            f"  {'step':34s} {'wall':>7s} {'user':>7s} {'sys':>7s} {'minflt':>9s} {'+HWM MB':>8s}"
+        )
         for label, w, u, s, f, hwm, sub in r["rows"]:
             print(f"  {label:34s} {w:7.3f} {u:7.3f} {s:7.3f} {f:9d} {hwm:8.0f}")
             for depth, sl, sw, su, ss, sf in sub:
                 print(f"    {'  ' * depth}{sl:30s} {sw:7.3f} {su:7.3f} {ss:7.3f} {sf:9d}")
-    if len(out) > 1:
-        import math
-        for a, b in zip(out, out[1:]):
-            na, nb = (a["n"] + 1) ** 2, (b["n"] + 1) ** 2
-            print(f"exponent {a['n']}->{b['n']}: "
-                  f"{math.log(b['total'] / a['total']) / math.log(nb / na):.3f}")
-    return out
+    for a, b in zip(out, out[1:], strict=False):
+        na, nb = (a["n"] + 1) ** 2, (b["n"] + 1) ** 2
+        print(
+            f"exponent {a['n']}->{b['n']}: "
+            f"{math.log(b['total'] / a['total']) / math.log(nb / na):.3f}"
+        )
+
+
+def main(argv=None):
+    from bench._common import finish, parse, parser
+
+    p = parser(__doc__, repeat=1)
+    p.add_argument("--state", choices=("asis", "cold", "warm"), default="asis")
+    args = parse(p, argv)
+    sizes = args.sizes or ([16, 32] if args.quick else [1024, 2048, 4096])
+    state = "asis" if args.quick else args.state
+    out = measure(sizes, state)
+    show(out)
+    pairs = []
+    for a, b in zip(out, out[1:], strict=False):
+        na, nb = (a["n"] + 1) ** 2, (b["n"] + 1) ** 2
+        pairs.append([a["n"], b["n"], math.log(b["total"] / a["total"]) / math.log(nb / na)])
+    payload = {"parameters": {"sizes": sizes, "state": state}, "rows": out, "exponents": pairs}
+    finish("mesh_phase_profile", payload, args.quick)
 
 
 if __name__ == "__main__":
-    if sys.argv[1] == "--worker":
+    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         worker(int(sys.argv[2]), sys.argv[3])
-    elif sys.argv[1] == "--state":
-        main([int(x) for x in sys.argv[3:]], sys.argv[2])
     else:
-        main([int(x) for x in sys.argv[1:]])
+        main()
