@@ -28,6 +28,7 @@ BENCHMARKS = (
     "estimate",
     "work_precision",
     "scaling",
+    "mesh_phase_profile",
     "threads",
     "unstructured",
     "direct_ordering",
