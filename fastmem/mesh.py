@@ -78,7 +78,6 @@ from .errors import (
     ReadOnlyError,
 )
 from .kernels import _par
-from .kernels import assembly as _ka
 from .kernels import topology as _kt
 from .options import check_memory
 
@@ -246,7 +245,7 @@ class Mesh:
 
     @classmethod
     def _from_owned(cls, vertices, triangles, *, orientation: str = "fix", validate: bool = True):
-        """A Mesh that takes ownership of new arrays: float64 (N, 2) and int64 (M, 3), C order.
+        """Return a Mesh that owns new arrays: float64 (N, 2) and int64 (M, 3), C order.
 
         For the generators and :meth:`_compact`, whose arrays are fresh, of the right
         dtypes and in range by construction: no conversion copy (at n = 4096 the copies

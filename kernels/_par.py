@@ -63,7 +63,7 @@ def ranges(n: int, threads: int, grain: int) -> list:
 
 
 def worker_pool():
-    """The shared pool (at least :func:`n_threads` threads), for work beside the caller's.
+    """Return the shared pool (at least :func:`n_threads` threads), for work beside the caller's.
 
     For NumPy work that releases the GIL (:func:`fastmem.callables.callable_integrals`
     forms a block's integrals there while the caller evaluates the next block).
@@ -124,7 +124,7 @@ TOUCH_GRAIN = 1 << 20
 
 
 def zeros(shape, dtype) -> np.ndarray:
-    """A new zero-filled array whose pages are first touched by the pool's threads.
+    """Return a new zero-filled array whose pages are first touched by the pool's threads.
 
     For the large arrays that a serial kernel then fills in a scattered order.  The
     first touch of new memory is what costs: on the 2-vCPU VM of the benchmarks,

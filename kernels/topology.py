@@ -112,7 +112,7 @@ def edge_topology(t, n, patches=None):
 
 @jit
 def _bucket(v, t, ptr, ptris, plocal, w, h):
-    """The half-edges leaving ``v`` towards a higher vertex, sorted by (that vertex, h).
+    """Sort the half-edges leaving ``v`` towards a higher vertex by (that vertex, h).
 
     Fills ``w`` (end points) and ``h`` (half-edges ``3 k + j``) and returns their
     number.  The patch lists its triangles ascending, so the candidates come in
@@ -144,7 +144,7 @@ def _bucket(v, t, ptr, ptris, plocal, w, h):
 
 @jit
 def _count_edges(lo, hi_end, t, ptr, ptris, plocal, w, h):
-    """The number of distinct pairs ``(v, w)``, ``w > v``, of the buckets ``lo <= v < hi_end``."""
+    """Count the distinct pairs ``(v, w)``, ``w > v``, of the buckets ``lo <= v < hi_end``."""
     ne = 0
     for v in range(lo, hi_end):
         nc = _bucket(v, t, ptr, ptris, plocal, w, h)
@@ -158,7 +158,7 @@ def _count_edges(lo, hi_end, t, ptr, ptris, plocal, w, h):
 def _number_edges(
     lo, hi_end, e0, t, ptr, ptris, plocal, w, h, edges, tri_edges, et, counts, forward
 ):
-    """The arrays of :func:`edge_topology` for the buckets ``lo <= v < hi_end``.
+    """Fill the arrays of :func:`edge_topology` for the buckets ``lo <= v < hi_end``.
 
     ``e0``: the number of the first edge of bucket ``lo`` (edges of the earlier buckets).
     Writes only the rows of its own edges and the half-edges of its own buckets.
@@ -381,7 +381,7 @@ def vertex_patches(t, ptr):
 
 @jit
 def _fill_patches(t, fill, tris, local):
-    """Counting sort of the half-edges by vertex; ``fill`` (N,) starts at the bucket starts."""
+    """Counting-sort the half-edges by vertex; ``fill`` (N,) starts at the bucket starts."""
     for k in range(t.shape[0]):
         for i in range(3):
             v = t[k, i]
