@@ -136,8 +136,8 @@ class AdaptiveStep(AMGStep):
 
     exact = False
 
-    def __init__(self, system, options, check_all=False):
-        super().__init__(system, options)
+    def __init__(self, system, options, check_all=False, prolongation=None):
+        super().__init__(system, options, prolongation)
         self.check_all = check_all
         if self.decoupled:  # the share of s in eta_alg steers its CG
             self.mass = _mass_matrix(system.scene)

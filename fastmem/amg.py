@@ -20,7 +20,14 @@ import scipy.sparse as sp
 
 from .errors import ParameterError
 
-__all__ = ["AMG_DEFAULTS", "PCG", "LazyAMG", "amg_preconditioner", "check_amg_options"]
+__all__ = [
+    "AMG_DEFAULTS",
+    "PCG",
+    "LazyAMG",
+    "TwoGridLaplacian",
+    "amg_preconditioner",
+    "check_amg_options",
+]
 
 #: Default pyamg options: smoothed aggregation, symmetric strength, V(1,1) cycles
 #: with symmetric Gauss-Seidel (an SPD preconditioner, as CG requires).  The
@@ -229,8 +236,10 @@ class HybridGaussSeidel:
     sweep took 18.5 ms with pyamg's serial kernel.
     """
 
-    def __init__(self, n_blocks: int):
+    def __init__(self, n_blocks: int, directions=(True, False)):
         self.n_blocks = n_blocks
+        #: the sweeps of one call: forward (True) and/or backward (False), in this order
+        self.directions = tuple(directions)
         self._old = None  # x before the sweep: one buffer per level, reused
         self._busy = threading.Lock()  # a concurrent call (another thread) gets its own
 
@@ -242,23 +251,25 @@ class HybridGaussSeidel:
         own = self._busy.acquire(blocking=False)
         try:
             if not own:  # the buffer is in use by a cycle in another thread
-                self._sweeps(nb, edges, indptr, indices, data, x, np.empty_like(x), b)
+                self._sweeps(
+                    nb, edges, indptr, indices, data, x, np.empty_like(x), b, self.directions
+                )
                 return
             if self._old is None or self._old.shape != x.shape:
                 # kept: a fresh copy per sweep cost more in page faults than the sweep gained
                 self._old = np.empty_like(x)
-            self._sweeps(nb, edges, indptr, indices, data, x, self._old, b)
+            self._sweeps(nb, edges, indptr, indices, data, x, self._old, b, self.directions)
         finally:
             if own:
                 self._busy.release()
 
     @staticmethod
-    def _sweeps(nb, edges, indptr, indices, data, x, x_old, b):
+    def _sweeps(nb, edges, indptr, indices, data, x, x_old, b, directions=(True, False)):
         from .kernels import _par
         from .kernels.smooth import gs_hybrid_range
 
         threads = min(_par.n_threads(), nb)
-        for forward in (True, False):
+        for forward in directions:
             np.copyto(x_old, x)
             # blocks handed out one at a time (a shared counter): a thread that runs
             # slower (a core the machine has just woken up) takes fewer of them; each
@@ -589,6 +600,92 @@ class LazyAMG:
     def release(self):
         """Free the hierarchy (a later call builds it again)."""
         self.pre = None
+
+
+class TwoGridLaplacian:
+    """Preconditioner of a nested level's interior Laplacian: smoother + the coarser level's AMG.
+
+    For the CG of the sum ``s`` on a level of nested iteration (the interior
+    Laplacian ``A``), in place of a smoothed-aggregation setup on ``A``: one
+    Gauss-Seidel sweep forward, the coarse correction ``P M_c^-1 P^T r`` with
+    ``P`` the P1 interpolation from the coarser level (interior to interior)
+    and ``M_c`` one V-cycle of an AMG hierarchy of the Galerkin operator
+    ``A_c = P^T A P`` (for nested P1 meshes the coarser level's own Laplacian,
+    exactly), then one sweep backward: a symmetric V(1,1) cycle, so an SPD
+    preconditioner.  Sweeps as in :class:`AMGPreconditioner` (the hybrid
+    sweep where :func:`_hybrid_converges`, else pyamg's Gauss-Seidel).
+
+    Why: on the finest level of an n = 1024 square the AMG setup of ``A``
+    took 0.3-0.85 s (about 120 bytes per vertex) for the 5 CG iterations of
+    ``s`` on the manufactured scene; ``P^T A P`` and the coarse setup take
+    0.13 s and a quarter of the memory, and the two-grid cycle reduces the
+    residual faster per iteration (0.3 against 0.4 per iteration on a random
+    right-hand side, 70 -> 62 ms per iteration with the split sweeps).
+
+    The same interface as :class:`LazyAMG`: built on first use, :meth:`release`
+    frees the coarse hierarchy, ``matrix`` may be replaced (spill / restore).
+    """
+
+    def __init__(self, matrix, prolongation, options: dict, stats: dict):
+        self.matrix = matrix
+        self.p = threaded(sp.csr_matrix(prolongation))
+        self.options = options
+        self.stats = stats
+        self.pre = None
+        self._r = None
+        self._sweeps = None
+
+    @property
+    def built(self) -> bool:
+        """True while a coarse hierarchy exists."""
+        return self.pre is not None
+
+    def build(self, key: str = "amg") -> None:
+        """Set up the coarse hierarchy (booked as ``{key}_setups``, ``{key}_setup_seconds``)."""
+        t0 = time.perf_counter()
+        a = self.matrix
+        r = self.p.T.tocsr()
+        coarse = (r @ (a @ self.p)).tocsr()
+        coarse.sort_indices()
+        self.pre = amg_preconditioner(coarse, dict(self.options))
+        self._r = threaded(r)
+        nb = hybrid_blocks(a.shape[0])
+        if nb and _kernel_arrays(a) and a.dtype == np.float64 and _hybrid_converges(a, nb):
+            self._sweeps = (HybridGaussSeidel(nb, (True,)), HybridGaussSeidel(nb, (False,)))
+        else:
+            self._sweeps = (_PlainSweep("forward"), _PlainSweep("backward"))
+        seconds = time.perf_counter() - t0
+        self.stats[f"{key}_setups"] = self.stats.get(f"{key}_setups", 0) + 1
+        self.stats[f"{key}_setup_seconds"] = self.stats.get(f"{key}_setup_seconds", 0.0) + seconds
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        """One V(1,1) two-grid cycle from a zero initial guess: ``z ~ A^-1 r``."""
+        if self.pre is None:
+            self.build()
+        a = self.matrix
+        b = np.ravel(np.asarray(r, dtype=np.float64))
+        x = np.zeros_like(b)
+        pre, post = self._sweeps
+        pre(a, x, b)
+        x += self.p @ self.pre(self._r @ (b - a @ x))
+        post(a, x, b)
+        return x
+
+    def release(self):
+        """Free the coarse hierarchy (a later call builds it again)."""
+        self.pre = self._r = self._sweeps = None
+
+
+class _PlainSweep:
+    """pyamg's serial Gauss-Seidel, one sweep in one direction, as a smoother ``(A, x, b)``."""
+
+    def __init__(self, sweep: str):
+        self.sweep = sweep
+
+    def __call__(self, a, x, b):
+        from pyamg.relaxation.relaxation import gauss_seidel
+
+        gauss_seidel(a, x, b, iterations=1, sweep=self.sweep)
 
 
 class PCG:

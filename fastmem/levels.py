@@ -23,7 +23,7 @@ from .bound import evaluate
 from .config import get_threads
 from .history import history_arrays, new_history
 from .loaddata import expect_estimates
-from .nested import coarse_scenes, prolong_triple
+from .nested import coarse_scenes, interpolation_matrix, prolong_triple
 from .newton import newton_min
 from .result import Result
 from .safeguard import new_safeguard_record
@@ -41,6 +41,17 @@ HINT_SAFETY = 0.7
 
 #: Nested iteration builds auxiliary coarse meshes for meshes without a coarser version.
 AUXILIARY = True
+
+
+#: Decoupled CGs on the levels of nested iteration precondition the sum s by a two-grid
+#: cycle over the coarser level (:class:`fastmem.amg.TwoGridLaplacian`) instead of an
+#: AMG setup of their own.
+TWO_GRID = True
+
+
+def _two_grid(options) -> bool:
+    """Whether the levels' linear steps get the interpolation for the two-grid cycle."""
+    return TWO_GRID and options.newton.method in ("inexact", "exact-amg")
 
 
 def _merge_safeguard(records):
@@ -83,8 +94,16 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
     for lev, sc in enumerate(levels):
         t0 = time.perf_counter()
         hint, slack = (disc_hint if lev == 0 else None), 1.0
+        prolongation = None
         if lev > 0:
-            triple = prolong_triple(sc, levels[lev - 1], triple)
+            coarse = levels[lev - 1]
+            mat = interpolation_matrix(coarse.mesh, sc.mesh)
+            triple = prolong_triple(sc, coarse, triple, mat)
+            if _two_grid(options):
+                # the decoupled CG's two-grid cycle for s (fastmem.amg.TwoGridLaplacian)
+                ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
+                prolongation = mat[ii][:, ic].tocsr()
+            del mat, coarse
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio
             # the coarser scene (mesh topology, matrices: a third of the fine level's
@@ -112,7 +131,9 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             disc_hint=hint,
             hint_slack=slack,
             prolonged=lev > 0 or prolonged,
+            prolongation=prolongation,
         )
+        prolongation = None
         triple = (out.last.u1, out.last.u2, out.last.lam)
         iterates.extend(out.iterates)
         info = {

@@ -237,9 +237,12 @@ def coarse_scenes(
     return chain[::-1]
 
 
-def prolong_triple(fine_scene: Scene, coarse_scene_: Scene, triple):
-    """Interpolate a coarse triple onto the fine mesh; boundary values reset exactly."""
-    mat = interpolation_matrix(coarse_scene_.mesh, fine_scene.mesh)
+def prolong_triple(fine_scene: Scene, coarse_scene_: Scene, triple, matrix=None):
+    """Interpolate a coarse triple onto the fine mesh; boundary values reset exactly.
+
+    ``matrix``: the :func:`interpolation_matrix` of the two meshes, if already built.
+    """
+    mat = interpolation_matrix(coarse_scene_.mesh, fine_scene.mesh) if matrix is None else matrix
     u1, u2, lam = (mat @ x for x in triple)
     bnd = fine_scene.mesh.boundary_vertices
     u1[bnd] = fine_scene.boundary_values[bnd]

@@ -81,15 +81,22 @@ def _active_key(active: np.ndarray) -> bytes:
     return hashlib.blake2b(np.packbits(active).tobytes(), digest_size=16).digest()
 
 
-def make_linear_step(scene, options):
-    """Build the linear step of ``options.newton.method`` (:mod:`fastmem.steps`)."""
+def make_linear_step(scene, options, prolongation=None):
+    """Build the linear step of ``options.newton.method`` (:mod:`fastmem.steps`).
+
+    ``prolongation``: interpolation from the coarser level of nested iteration,
+    interior vertices to interior vertices (the decoupled CG's two-grid cycle for
+    the sum, :class:`fastmem.amg.TwoGridLaplacian`); None: none.
+    """
     system = make_step(scene, options.newton.path)
     method = options.newton.method
     if method == "exact":
         return DirectStep(system)
     if method == "exact-amg":
-        return AMGStep(system, options.inner)
-    return AdaptiveStep(system, options.inner, check_all=options.record.full_history)
+        return AMGStep(system, options.inner, prolongation)
+    return AdaptiveStep(
+        system, options.inner, check_all=options.record.full_history, prolongation=prolongation
+    )
 
 
 @dataclass
@@ -307,6 +314,7 @@ def newton_min(
     disc_hint=None,
     hint_slack=1.0,
     prolonged=False,
+    prolongation=None,
 ) -> LevelOutcome:
     """Newton-min on one mesh, for any method; appends its history rows to ``rows``.
 
@@ -337,9 +345,12 @@ def newton_min(
     prolonged : bool
         ``init`` was prolonged from a coarser level: its first active set is
         :func:`fastmem.nested.warm_active_set` (else the rule of docs/method.md §3.1).
+    prolongation : sparse matrix or None
+        Interpolation from the coarser level, interior to interior vertices
+        (:func:`make_linear_step`).
     """
     no = options.newton
-    step = make_linear_step(scene, options)
+    step = make_linear_step(scene, options, prolongation)
     checks = Checks(scene, options, step, level, rows, certify, disc_hint, hint_slack)
     guard = new_safeguard_record()
     safe = _Safeguard(scene, step, checks, guard)

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .amg import PCG, LazyAMG, amg_preconditioner, threaded
+from .amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner, threaded
 from .linear import DecoupledStep
 
 __all__ = [
@@ -248,17 +248,22 @@ class DecoupledCG:
     hierarchy slowed CG down four-fold).
     """
 
-    def __init__(self, system, options, stats):
+    def __init__(self, system, options, stats, prolongation=None):
         self.system = system
         self.options = options
         self.stats = stats
         a = system.a_ii = threaded(system.a_ii)  # a view: CG products in the kernel threads
         self.a_ii = a
         self.diag = a.diagonal()
-        # the Laplacian's hierarchy, built when first applied (the CG of s, or of w while
-        # the active set is close to empty): on the finest level s usually needs no
-        # iteration, and an unused hierarchy is a setup and ~120 bytes per vertex wasted
-        self.pre_all = LazyAMG(a, options.amg_options, stats)
+        # the Laplacian's preconditioner, built when first applied (the CG of s, or of w
+        # while the active set is close to empty): on the finest level s usually needs no
+        # iteration, and an unused hierarchy is a setup and ~120 bytes per vertex wasted.
+        # On a level of nested iteration (``prolongation``: interpolation from the coarser
+        # level, interior to interior) a two-grid cycle over the coarser level's operator
+        if prolongation is not None:
+            self.pre_all = TwoGridLaplacian(a, prolongation, options.amg_options, stats)
+        else:
+            self.pre_all = LazyAMG(a, options.amg_options, stats)
         self.pre_w = self.pre_all
         self.setup_active = np.zeros(system.interior.size, dtype=bool)
         self.update_active = self.setup_active  # the active set the gap hierarchy is for
@@ -344,7 +349,10 @@ class DecoupledCG:
             self.cg_w.b = np.where(self.active, 0.0, self.system.rhs_w)
         rebuild_all, rebuild_w = self._rebuild
         if rebuild_all:
-            self.pre_all.pre = _resetup(a, self.options, self.stats)
+            if isinstance(self.pre_all, TwoGridLaplacian):
+                self.pre_all.build("spill")
+            else:
+                self.pre_all.pre = _resetup(a, self.options, self.stats)
         if rebuild_w:
             # the hierarchy of the setup's active set (often the current one: its matrix)
             same = self.cg_w is not None and np.array_equal(self.setup_active, self.active)
@@ -467,12 +475,15 @@ class AMGStep:
 
     exact = True
 
-    def __init__(self, system, options):
+    def __init__(self, system, options, prolongation=None):
         self.name = system.name
         self.options = options
         self.stats = new_stats()
         self.decoupled = isinstance(system, DecoupledStep)
-        self.cg = (DecoupledCG if self.decoupled else GeneralCG)(system, options, self.stats)
+        if self.decoupled:
+            self.cg = DecoupledCG(system, options, self.stats, prolongation)
+        else:
+            self.cg = GeneralCG(system, options, self.stats)
         self.total_iterations = 0
 
     def face_solve(self, active, warm):

@@ -1,0 +1,93 @@
+"""The sum's two-grid preconditioner on levels of nested iteration (issue 15).
+
+:class:`fastmem.amg.TwoGridLaplacian` replaces the AMG setup of the interior
+Laplacian on a level of nested iteration by a cycle over the coarser level:
+checked for the Galerkin identity it relies on, for symmetry (CG needs an SPD
+preconditioner), for its convergence against the AMG cycle it replaces, with
+both smoothers (pyamg's sweep below the hybrid sweep's size, the hybrid sweep
+above), and for solutions unchanged against the solver without it.
+"""
+
+import numpy as np
+import pytest
+
+import fastmem as fm
+from fastmem import levels
+from fastmem.amg import PCG, TwoGridLaplacian, amg_preconditioner
+from fastmem.assembly import assemble_stiffness
+from fastmem.nested import interpolation_matrix
+
+
+def _pair(n):
+    """Interior Laplacians of square(n) and square(n // 2) and the interpolation between them."""
+    fine, coarse = fm.Mesh.square(n), fm.Mesh.square(n // 2)
+    ii, ic = fine.interior_vertices, coarse.interior_vertices
+    a = assemble_stiffness(fine)[ii][:, ii].tocsr()
+    ac = assemble_stiffness(coarse)[ic][:, ic].tocsr()
+    p = interpolation_matrix(coarse, fine)[ii][:, ic].tocsr()
+    return a, ac, p
+
+
+def test_galerkin_operator_is_the_coarse_laplacian():
+    a, ac, p = _pair(32)
+    diff = (p.T @ a @ p - ac).tocsr()
+    assert abs(diff).max() <= 1e-13 * abs(ac).max()
+
+
+@pytest.mark.parametrize("n", [32, 256])  # pyamg's sweeps; the hybrid sweep (65k rows)
+def test_cycle_is_symmetric_positive_definite(n):
+    a, _, p = _pair(n)
+    stats = {}
+    m = TwoGridLaplacian(a, p, fm.amg.AMG_DEFAULTS, stats)
+    rng = np.random.default_rng(0)
+    u, v = rng.standard_normal((2, a.shape[0]))
+    mu, mv = m(u), m(v)
+    assert abs(u @ mv - v @ mu) <= 1e-12 * np.sqrt((u @ mu) * (v @ mv))
+    assert u @ mu > 0
+    assert v @ mv > 0
+    assert stats["amg_setups"] == 1
+    assert m.built
+    hybrid = n == 256
+    assert (type(m._sweeps[0]).__name__ == "HybridGaussSeidel") == hybrid
+    m.release()
+    assert not m.built
+    assert np.array_equal(m(u), mu)  # rebuilt on use: the same cycle
+
+
+@pytest.mark.parametrize("n", [64, 256])
+def test_cg_converges_at_least_as_fast_as_with_the_amg_cycle(n):
+    a, _, p = _pair(n)
+    b = np.random.default_rng(1).standard_normal(a.shape[0])
+
+    def iterations(pre):
+        cg = PCG(a, b, np.zeros_like(b), pre)
+        k = 0
+        while cg.relative_residual > 1e-8 and k < 100:
+            cg.step()
+            k += 1
+        return k
+
+    two = iterations(TwoGridLaplacian(a, p, fm.amg.AMG_DEFAULTS, {}))
+    amg = iterations(amg_preconditioner(a))
+    assert two <= amg
+    assert two <= 20
+
+
+@pytest.mark.parametrize("method", ["inexact", "exact-amg"])
+def test_solution_unchanged_against_the_solver_without_it(method, monkeypatch):
+    mesh = fm.Mesh.square(128)
+    ms = fm.Manufactured()
+    scene = ms.scene(mesh)
+    with_two = fm.solve(scene, method=method)
+    monkeypatch.setattr(levels, "TWO_GRID", False)
+    without = fm.solve(fm.Manufactured().scene(mesh), method=method)
+    if method == "exact-amg":  # both to round-off: the same solution
+        for x, y in zip((with_two.u1, with_two.u2), (without.u1, without.u2), strict=True):
+            assert np.abs(x - y).max() <= 1e-9 * np.abs(y).max()
+        assert np.array_equal(with_two.active, without.active)
+    # inexact: both stopped by the estimators, the same error and bound to a few per cent
+    e_with = ms.energy_error(mesh, with_two.u1, with_two.u2)
+    e_without = ms.energy_error(mesh, without.u1, without.u2)
+    assert abs(e_with - e_without) <= 0.02 * e_without
+    assert abs(with_two.eta - without.eta) <= 0.05 * without.eta
+    assert with_two.eta >= e_with
