@@ -46,6 +46,7 @@ import logging
 import math
 import os
 
+from .amg import threaded
 from .estimators import _mass_matrix, friedrichs_constant
 from .history import ADAPTIVE_HISTORY_COLUMNS
 from .options import estimate_memory, memory_limit
@@ -140,7 +141,7 @@ class AdaptiveStep(AMGStep):
         super().__init__(system, options, prolongation)
         self.check_all = check_all
         if self.decoupled:  # the share of s in eta_alg steers its CG
-            self.mass = _mass_matrix(system.scene)
+            self.mass = threaded(_mass_matrix(system.scene))
             self.c_f = friedrichs_constant(system.scene.mesh)
         self.spilling = _wants_spill(system.scene.mesh, options.memory_limit)
         self.stats["spill"] = self.spilling
@@ -171,7 +172,7 @@ class AdaptiveStep(AMGStep):
         """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
         self.cg.restore()
         if self.decoupled and self.mass is None:
-            self.mass = _mass_matrix(self.cg.system.scene)
+            self.mass = threaded(_mass_matrix(self.cg.system.scene))
 
     def _skip(self, last, i, budget):
         """Return True when the inner criterion cannot plausibly hold yet (skip the check)."""

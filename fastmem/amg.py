@@ -644,6 +644,10 @@ class TwoGridLaplacian:
         """Set up the coarse hierarchy (booked as ``{key}_setups``, ``{key}_setup_seconds``)."""
         t0 = time.perf_counter()
         a = self.matrix
+        if self.p is None:  # released for good (:meth:`release`): AMG on the matrix itself
+            self.pre = amg_preconditioner(a, dict(self.options))
+            self._book(key, time.perf_counter() - t0)
+            return
         r = self.p.T.tocsr()
         coarse = (r @ (a @ self.p)).tocsr()
         coarse.sort_indices()
@@ -654,7 +658,9 @@ class TwoGridLaplacian:
             self._sweeps = (HybridGaussSeidel(nb, (True,)), HybridGaussSeidel(nb, (False,)))
         else:
             self._sweeps = (_PlainSweep("forward"), _PlainSweep("backward"))
-        seconds = time.perf_counter() - t0
+        self._book(key, time.perf_counter() - t0)
+
+    def _book(self, key, seconds):
         self.stats[f"{key}_setups"] = self.stats.get(f"{key}_setups", 0) + 1
         self.stats[f"{key}_setup_seconds"] = self.stats.get(f"{key}_setup_seconds", 0.0) + seconds
 
@@ -662,6 +668,8 @@ class TwoGridLaplacian:
         """One V(1,1) two-grid cycle from a zero initial guess: ``z ~ A^-1 r``."""
         if self.pre is None:
             self.build()
+        if self._sweeps is None:  # no interpolation any more: the fine hierarchy's cycle
+            return self.pre(r)
         a = self.matrix
         b = np.ravel(np.asarray(r, dtype=np.float64))
         x = np.zeros_like(b)
@@ -671,9 +679,15 @@ class TwoGridLaplacian:
         post(a, x, b)
         return x
 
-    def release(self):
-        """Free the coarse hierarchy (a later call builds it again)."""
+    def release(self, final: bool = False):
+        """Free the coarse hierarchy (a later call builds it again).
+
+        ``final``: the interpolation goes too (about 30 bytes per fine vertex); a
+        later call then sets up AMG on the matrix itself, as :class:`LazyAMG` would.
+        """
         self.pre = self._r = self._sweeps = None
+        if final:
+            self.p = None
 
 
 class _PlainSweep:

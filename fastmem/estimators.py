@@ -69,6 +69,7 @@ import math
 
 import numpy as np
 
+from .amg import threaded
 from .assembly import assemble_mass
 from .errors import DataError
 from .kernels import cut as _cut
@@ -313,20 +314,24 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     rho1 = np.where(interior, r1 / b, 0.0)
     rho2 = np.where(interior, r2 / b, 0.0)
     _, lam_minus = _lambda_parts(mesh, lam)
-    mass = _mass_matrix(scene)
+    mass = threaded(_mass_matrix(scene))  # products in the kernel threads, scipy's sums
+    # three products for the five norms: M (rho_i -/+ lam^-) = M rho_i -/+ M lam^-, each
+    # norm the dot product of its own vector with its own product (no expanded squares,
+    # so no cancellation between them)
+    m_rho1, m_rho2, m_lam = mass @ rho1, mass @ rho2, mass @ lam_minus
 
-    def norm(x):
-        return math.sqrt(max(float(x @ (mass @ x)), 0.0))
+    def norm(x, mx):
+        return math.sqrt(max(float(x @ mx), 0.0))
 
     c_f = friedrichs_constant(mesh)
     mu1 = float(np.min(scene.mu1))
     mu2 = float(np.min(scene.mu2))
     return {
-        "eta_glob1": c_f / math.sqrt(mu1) * norm(rho1 + lam_minus),
-        "eta_glob2": c_f / math.sqrt(mu2) * norm(rho2 - lam_minus),
-        "rho_norm1": norm(rho1),
-        "rho_norm2": norm(rho2),
-        "lam_minus_norm": norm(lam_minus),
+        "eta_glob1": c_f / math.sqrt(mu1) * norm(rho1 + lam_minus, m_rho1 + m_lam),
+        "eta_glob2": c_f / math.sqrt(mu2) * norm(rho2 - lam_minus, m_rho2 - m_lam),
+        "rho_norm1": norm(rho1, m_rho1),
+        "rho_norm2": norm(rho2, m_rho2),
+        "lam_minus_norm": norm(lam_minus, m_lam),
         "C_F": c_f,
         "mu1": mu1,
         "mu2": mu2,

@@ -284,7 +284,7 @@ class DecoupledCG:
         if changed > self.options.amg_reuse * active.size:
             self.pre_w = None  # free the old hierarchy before the new one is built
             if self.s_done:
-                self.pre_all.release()
+                self._drop_all()
             self.pre_w = amg_preconditioner(mat, dict(self.options.amg_options))
             self.stats["amg_setups"] += 1
             self.stats["amg_setup_seconds"] += self.pre_w.setup_seconds
@@ -370,6 +370,18 @@ class DecoupledCG:
         self.s_done = True
         self.cg_s.release()
         if self.pre_w is not self.pre_all:
+            # used by nothing else: a two-grid cycle also drops its interpolation
+            self._drop_all()
+
+    def _drop_all(self):
+        """Free the Laplacian's preconditioner once s is done and w has its own hierarchy.
+
+        Nothing uses it again on this level (``pre_w`` never returns to it); a two-grid
+        cycle also drops its interpolation.
+        """
+        if isinstance(self.pre_all, TwoGridLaplacian):
+            self.pre_all.release(final=True)
+        else:
             self.pre_all.release()
 
     def _masked(self, r):

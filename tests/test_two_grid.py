@@ -91,3 +91,19 @@ def test_solution_unchanged_against_the_solver_without_it(method, monkeypatch):
     assert abs(e_with - e_without) <= 0.02 * e_without
     assert abs(with_two.eta - without.eta) <= 0.05 * without.eta
     assert with_two.eta >= e_with
+
+
+def test_released_for_good_it_falls_back_to_amg_on_the_matrix():
+    a, _, p = _pair(64)
+    stats = {}
+    m = TwoGridLaplacian(a, p, fm.amg.AMG_DEFAULTS, stats)
+    u = np.random.default_rng(2).standard_normal(a.shape[0])
+    two = m(u)
+    m.release(final=True)
+    assert m.p is None
+    assert not m.built
+    fallback = m(u)
+    assert np.array_equal(fallback, amg_preconditioner(a)(u))
+    assert not np.array_equal(fallback, two)
+    assert stats["amg_setups"] == 2
+
