@@ -19,13 +19,23 @@ forked child process starts without it (a thread pool does not survive
 """
 
 import concurrent.futures
+import itertools
 import os
 import threading
 
 import numba
 import numpy as np
 
-__all__ = ["GRAIN", "n_threads", "parallel_for", "ranges", "run_ranges", "worker_pool", "zeros"]
+__all__ = [
+    "GRAIN",
+    "n_threads",
+    "parallel_for",
+    "ranges",
+    "run_pieces",
+    "run_ranges",
+    "worker_pool",
+    "zeros",
+]
 
 #: fewest loop iterations per thread: shorter loops run in the calling thread
 #: (handing a chunk to a pool thread costs tens of microseconds)
@@ -108,6 +118,32 @@ def run_ranges(fn, chunks) -> None:
     for err in errors:
         if err is not None:
             raise err
+
+
+def run_pieces(fn, pieces, threads: int) -> None:
+    """Call ``fn(lo, hi)`` for every pair of ``pieces``, handed out one at a time to ``threads``.
+
+    Dynamic scheduling for loops whose chunks cost unequal time (or run on a core
+    the machine has slowed down): each thread takes the next piece from a shared
+    counter until none is left.  Each piece is computed by the same operations
+    whichever thread takes it, so results do not depend on the scheduling as long
+    as ``fn`` writes only what no other piece writes.
+    """
+    pieces = list(pieces)
+    threads = max(1, min(int(threads), len(pieces)))
+    if threads == 1:
+        for lo, hi in pieces:
+            fn(lo, hi)
+        return
+    counter = itertools.count()  # next() of a count is atomic under the GIL
+
+    def worker(_lo, _hi):
+        k = next(counter)
+        while k < len(pieces):
+            fn(*pieces[k])
+            k = next(counter)
+
+    run_ranges(worker, [(0, 0)] * threads)
 
 
 def parallel_for(kernel, n: int, *args, grain: int = GRAIN) -> None:

@@ -648,6 +648,9 @@ def _coefficients_chunk(vertices, triangles, diameters, out, t0, t1):
 #: fewest patches (triangles) per thread: below, a colour class (the final pass)
 #: runs in the calling thread (a thread hand-off costs about 20 us)
 PATCH_GRAIN = 256
+#: pieces per thread of a colour class, handed out dynamically (:func:`._par.run_pieces`);
+#: 1: one fixed chunk per thread
+PATCH_PIECES = 16
 TRIANGLE_GRAIN = 4096
 
 
@@ -875,8 +878,12 @@ def reconstruct_colored(
     for c in range(color_ptr.shape[0] - 1):
         lo = int(color_ptr[c])
         hi = int(color_ptr[c + 1])
-        chunks = _par.ranges(hi - lo, threads, PATCH_GRAIN)
-        _par.run_ranges(patches, [(lo + a, lo + b) for a, b in chunks])
+        if PATCH_PIECES > 1 and threads > 1:
+            chunks = _par.ranges(hi - lo, PATCH_PIECES * threads, PATCH_GRAIN)
+            _par.run_pieces(patches, [(lo + a, lo + b) for a, b in chunks], threads)
+        else:
+            chunks = _par.ranges(hi - lo, threads, PATCH_GRAIN)
+            _par.run_ranges(patches, [(lo + a, lo + b) for a, b in chunks])
 
     def coefficients(t0, t1):
         _coefficients_chunk(vertices, triangles, diameters, out, t0, t1)

@@ -17,6 +17,7 @@ import os
 import re
 import subprocess
 import sys
+import threading
 
 import numba
 import numpy as np
@@ -148,7 +149,35 @@ def test_flux_bits_independent_of_threads_and_chunks(monkeypatch):
         monkeypatch.setattr(kf, "PATCH_GRAIN", 1)
         monkeypatch.setattr(kf, "TRIANGLE_GRAIN", 1)
         tiny = flux.reconstruct(scene, res.u1, res.u2, res.lam).coef
+        monkeypatch.setattr(kf, "PATCH_PIECES", 1)  # one fixed chunk per thread
+        fixed = flux.reconstruct(scene, res.u1, res.u2, res.lam).coef
     finally:
         numba.set_num_threads(old)
     assert np.array_equal(one, many)
     assert np.array_equal(one, tiny)
+    assert np.array_equal(one, fixed)
+
+
+@pytest.mark.parametrize(("pieces", "threads"), [(0, 2), (1, 2), (7, 1), (7, 3), (40, 2)])
+def test_run_pieces_calls_every_piece_once(pieces, threads):
+    calls, lock = [], threading.Lock()
+    seen_threads = set()
+
+    def fn(lo, hi):
+        with lock:
+            calls.append((lo, hi))
+            seen_threads.add(threading.get_ident())
+
+    chunks = [(k, k + 1) for k in range(pieces)]
+    _par.run_pieces(fn, chunks, threads)
+    assert sorted(calls) == chunks
+    assert len(seen_threads) <= max(1, threads)
+
+
+def test_run_pieces_raises_a_piece_error():
+    def fn(lo, hi):
+        if lo == 5:
+            raise RuntimeError(f"piece {lo}")
+
+    with pytest.raises(RuntimeError, match="piece 5"):
+        _par.run_pieces(fn, [(k, k + 1) for k in range(8)], 2)

@@ -106,4 +106,3 @@ def test_released_for_good_it_falls_back_to_amg_on_the_matrix():
     assert np.array_equal(fallback, amg_preconditioner(a)(u))
     assert not np.array_equal(fallback, two)
     assert stats["amg_setups"] == 2
-
