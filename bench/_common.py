@@ -140,13 +140,18 @@ def summary(times):
     }
 
 
-def timed(fn, repeat=3, warmup=1):
-    """Run fn warmup + repeat times; return (last result, dict of min/median/max/all)."""
+def timed(fn, repeat=3, warmup=1, min_seconds=0.0, max_repeat=50):
+    """Run fn warmup + repeat times; return (last result, dict of min/median/max/all).
+
+    ``min_seconds``: go on repeating (up to ``max_repeat`` runs) until the timed runs
+    add up to this much, as ``timeit``'s autorange does: a run of a few tens of
+    milliseconds is at the mercy of one hiccup of the machine in a median of three.
+    """
     out = None
     for _ in range(warmup):
         out = fn()
     times = []
-    for _ in range(repeat):
+    while len(times) < repeat or (sum(times) < min_seconds and len(times) < max_repeat):
         t0 = time.perf_counter()
         out = fn()
         times.append(time.perf_counter() - t0)
