@@ -49,9 +49,14 @@ AUXILIARY = True
 TWO_GRID = True
 
 
-def _two_grid(options) -> bool:
-    """Whether the levels' linear steps get the interpolation for the two-grid cycle."""
-    return TWO_GRID and options.newton.method in ("inexact", "exact-amg")
+def _two_grid(options, scene) -> bool:
+    """Whether the level's linear step gets the interpolation for the two-grid cycle.
+
+    Only the decoupled CG (``path`` "decoupled", or "auto" with constant tensions) uses it.
+    """
+    no = options.newton
+    decoupled = no.path == "decoupled" or (no.path == "auto" and scene.constant_mu)
+    return TWO_GRID and no.method in ("inexact", "exact-amg") and decoupled
 
 
 def _merge_safeguard(records):
@@ -99,10 +104,12 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             coarse = levels[lev - 1]
             mat = interpolation_matrix(coarse.mesh, sc.mesh)
             triple = prolong_triple(sc, coarse, triple, mat)
-            if _two_grid(options):
+            if _two_grid(options, sc):
                 # the decoupled CG's two-grid cycle for s (fastmem.amg.TwoGridLaplacian)
                 ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
-                prolongation = mat[ii][:, ic].tocsr()
+                # handed over as a list that newton_min empties: the step's two-grid
+                # cycle is then its only owner and can free it (TwoGridLaplacian.release)
+                prolongation = [mat[ii][:, ic].tocsr()]
             del mat, coarse
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio
@@ -133,7 +140,7 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             prolonged=lev > 0 or prolonged,
             prolongation=prolongation,
         )
-        prolongation = None
+        del prolongation
         triple = (out.last.u1, out.last.u2, out.last.lam)
         iterates.extend(out.iterates)
         info = {

@@ -345,12 +345,16 @@ def newton_min(
     prolonged : bool
         ``init`` was prolonged from a coarser level: its first active set is
         :func:`fastmem.nested.warm_active_set` (else the rule of docs/method.md §3.1).
-    prolongation : sparse matrix or None
+    prolongation : sparse matrix, a list holding one, or None
         Interpolation from the coarser level, interior to interior vertices
-        (:func:`make_linear_step`).
+        (:func:`make_linear_step`); a list is emptied, so that the linear step
+        holds the only reference and frees it when done.
     """
     no = options.newton
+    if isinstance(prolongation, list):  # handed over: the step becomes its only owner
+        prolongation = prolongation.pop() if prolongation else None
     step = make_linear_step(scene, options, prolongation)
+    prolongation = None
     checks = Checks(scene, options, step, level, rows, certify, disc_hint, hint_slack)
     guard = new_safeguard_record()
     safe = _Safeguard(scene, step, checks, guard)

@@ -78,9 +78,22 @@ def test_solution_unchanged_against_the_solver_without_it(method, monkeypatch):
     mesh = fm.Mesh.square(128)
     ms = fm.Manufactured()
     scene = ms.scene(mesh)
+    built = []
+    original = TwoGridLaplacian.build
+
+    def counting(self, key="amg"):
+        built.append((self.matrix.shape[0], self.p is not None))
+        original(self, key)
+
+    monkeypatch.setattr(TwoGridLaplacian, "build", counting)
     with_two = fm.solve(scene, method=method)
+    # the two-grid cycle was set up on the finest level, from its interpolation
+    assert (mesh.interior_vertices.size, True) in built
     monkeypatch.setattr(levels, "TWO_GRID", False)
     without = fm.solve(fm.Manufactured().scene(mesh), method=method)
+    s_with = with_two.parameters["solver"]["levels"][-1]["s_iterations"]
+    s_without = without.parameters["solver"]["levels"][-1]["s_iterations"]
+    assert s_with <= s_without
     if method == "exact-amg":  # both to round-off: the same solution
         for x, y in zip((with_two.u1, with_two.u2), (without.u1, without.u2), strict=True):
             assert np.abs(x - y).max() <= 1e-9 * np.abs(y).max()
@@ -106,3 +119,37 @@ def test_released_for_good_it_falls_back_to_amg_on_the_matrix():
     assert np.array_equal(fallback, amg_preconditioner(a)(u))
     assert not np.array_equal(fallback, two)
     assert stats["amg_setups"] == 2
+
+
+@pytest.mark.parametrize("n", [64, 256])  # pyamg's sweeps; the hybrid sweep
+def test_rebuilt_after_a_spill_the_cycle_is_the_same_bit_for_bit(n):
+    """What DecoupledCG.spill / restore do: release, a new (equal) matrix, build("spill")."""
+    a, _, p = _pair(n)
+    stats = {}
+    m = TwoGridLaplacian(a, p, fm.amg.AMG_DEFAULTS, stats)
+    u = np.random.default_rng(3).standard_normal(a.shape[0])
+    before = m(u)
+    m.release()
+    m.matrix = a.copy()  # the Laplacian assembled again
+    m.build("spill")
+    assert np.array_equal(m(u), before)
+    assert stats["spill_setups"] == 1
+
+
+def test_no_level_solver_outlives_its_level():
+    """Each level's decoupled CG (matrices, hierarchies, interpolation) is freed by
+    reference counting when its level ends, not left to the cycle collector."""
+    import gc
+
+    from fastmem.steps import DecoupledCG
+
+    scene = fm.Manufactured().scene(fm.Mesh.square(64))
+    gc.collect()
+    gc.disable()
+    try:
+        result = fm.solve(scene)
+        alive = [o for o in gc.get_objects() if isinstance(o, DecoupledCG | TwoGridLaplacian)]
+    finally:
+        gc.enable()
+    assert result.parameters["solver"]["nested_levels"] > 1
+    assert alive == []
