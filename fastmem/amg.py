@@ -589,20 +589,30 @@ class LazyAMG:
         """True while a hierarchy exists."""
         return self.pre is not None
 
+    def build(self, key: str = "amg") -> None:
+        """Set up the hierarchy (booked as ``{key}_setups``, ``{key}_setup_seconds``).
+
+        ``key="spill"``: a rebuild after :meth:`fastmem.steps.DecoupledCG.spill`.
+        """
+        self.pre = amg_preconditioner(self.matrix, dict(self.options))
+        self._book(key, self.pre.setup_seconds)
+
+    def _book(self, key, seconds):
+        self.stats[f"{key}_setups"] = self.stats.get(f"{key}_setups", 0) + 1
+        self.stats[f"{key}_setup_seconds"] = self.stats.get(f"{key}_setup_seconds", 0.0) + seconds
+
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One multigrid cycle (the hierarchy built first if there is none)."""
         if self.pre is None:
-            self.pre = amg_preconditioner(self.matrix, dict(self.options))
-            self.stats["amg_setups"] += 1
-            self.stats["amg_setup_seconds"] += self.pre.setup_seconds
+            self.build()
         return self.pre(r)
 
-    def release(self):
-        """Free the hierarchy (a later call builds it again)."""
+    def release(self, final: bool = False):
+        """Free the hierarchy (a later call builds it again); ``final``: nothing more to free."""
         self.pre = None
 
 
-class TwoGridLaplacian:
+class TwoGridLaplacian(LazyAMG):
     """Preconditioner of a nested level's interior Laplacian: smoother + the coarser level's AMG.
 
     For the CG of the sum ``s`` on a level of nested iteration (the interior
@@ -628,26 +638,17 @@ class TwoGridLaplacian:
     """
 
     def __init__(self, matrix, prolongation, options: dict, stats: dict):
-        self.matrix = matrix
+        super().__init__(matrix, options, stats)
         self.p = threaded(sp.csr_matrix(prolongation))
-        self.options = options
-        self.stats = stats
-        self.pre = None
         self._r = None
         self._sweeps = None
-
-    @property
-    def built(self) -> bool:
-        """True while a coarse hierarchy exists."""
-        return self.pre is not None
 
     def build(self, key: str = "amg") -> None:
         """Set up the coarse hierarchy (booked as ``{key}_setups``, ``{key}_setup_seconds``)."""
         t0 = time.perf_counter()
         a = self.matrix
         if self.p is None:  # released for good (:meth:`release`): AMG on the matrix itself
-            self.pre = amg_preconditioner(a, dict(self.options))
-            self._book(key, time.perf_counter() - t0)
+            super().build(key)
             return
         r = self.p.T.tocsr()
         coarse = (r @ (a @ self.p)).tocsr()
@@ -660,10 +661,6 @@ class TwoGridLaplacian:
         else:
             self._sweeps = (_PlainSweep("forward"), _PlainSweep("backward"))
         self._book(key, time.perf_counter() - t0)
-
-    def _book(self, key, seconds):
-        self.stats[f"{key}_setups"] = self.stats.get(f"{key}_setups", 0) + 1
-        self.stats[f"{key}_setup_seconds"] = self.stats.get(f"{key}_setup_seconds", 0.0) + seconds
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V(1,1) two-grid cycle from a zero initial guess: ``z ~ A^-1 r``."""

@@ -367,10 +367,7 @@ class DecoupledCG:
             self.cg_w.b = np.where(self.active, 0.0, self.system.rhs_w)
         rebuild_all, rebuild_w = self._rebuild
         if rebuild_all:
-            if isinstance(self.pre_all, TwoGridLaplacian):
-                self.pre_all.build("spill")
-            else:
-                self.pre_all.pre = _resetup(a, self.options, self.stats)
+            self.pre_all.build("spill")
         if rebuild_w:
             # the hierarchy of the setup's active set (often the current one: its matrix)
             same = self.cg_w is not None and np.array_equal(self.setup_active, self.active)
@@ -397,10 +394,7 @@ class DecoupledCG:
         Nothing uses it again on this level (``pre_w`` never returns to it); a two-grid
         cycle also drops its interpolation.
         """
-        if isinstance(self.pre_all, TwoGridLaplacian):
-            self.pre_all.release(final=True)
-        else:
-            self.pre_all.release()
+        self.pre_all.release(final=True)
 
     def _masked(self, r):
         # the hierarchy may belong to an older active set: keep w = 0 on the current one
