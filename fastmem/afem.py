@@ -42,7 +42,10 @@ until the guaranteed bound of the returned triple is below the target:
    the error in); or when the next mesh would exceed ``max_vertices``, the
    loop has solved ``max_levels`` meshes, or the next level would end after
    ``time_budget`` seconds (predicted from the last level's time, scaled by
-   the number of vertices).  Then ``converged=False`` and the reason is in
+   the number of vertices), or the triangles at the resolution limit
+   (diameter at most :data:`RESOLUTION_LIMIT` = 2^-26 of the domain's size;
+   they are never marked, since below it round-off swamps the bound) alone
+   hold more than the target.  Then ``converged=False`` and the reason is in
    ``result.parameters["adaptivity"]["stop_reason"]``.
 4. **MARK** the fewest triangles holding a fraction ``theta`` of
    ``sum eta_K^2`` (Dörfler, :func:`fastmem.refine.dorfler_mark`, O(M)),
@@ -102,6 +105,7 @@ __all__ = [
     "indicators",
     "prolong_to_refined",
     "refine_scene",
+    "resolution_limit",
     "solve_to_tolerance",
 ]
 
@@ -295,6 +299,15 @@ LANDING_MAX_GROWTH = 1.0
 _LANDING_TOL = 0.01
 _LANDING_TRIES = 8
 
+#: Triangles whose diameter is at most this fraction of the domain's size (the longer
+#: side of its bounding box) are not marked.  Below it the geometry and the nodal
+#: residuals lose too many digits for the bound to mean anything: on a checkerboard of
+#: contrast 1e3 the loop refined the cross points to diameters of 1e-10 ... 1e-16 (1e-9
+#: after 60 meshes, 2 levels per halving), where round-off in the residuals, divided by
+#: lumped masses of h^2, made the global term eta_alg grow from 6e-3 to 2e3 while
+#: eta_disc kept falling.  2^-26 (1.5e-8) leaves two orders of magnitude to that.
+RESOLUTION_LIMIT = 2.0**-26
+
 
 def mesh_part(totals) -> float:
     r"""Return the bound ``eta`` of an estimate without its solver parts (what refinement controls).
@@ -374,9 +387,43 @@ def _mark_vertices(mesh, eta2, want, k0, n0):
     return best[0]
 
 
-def _next_mesh(scene, result, adapt, row=None, target=None):
+def resolution_limit(mesh) -> float:
+    """Smallest diameter of a triangle the adaptive loop still marks (:data:`RESOLUTION_LIMIT`)."""
+    x0, x1, y0, y1 = mesh.bounding_box
+    return RESOLUTION_LIMIT * max(x1 - x0, y1 - y0)
+
+
+def _markable(mesh, eta2, target):
+    r"""Return the indicators without the triangles at the resolution limit, and a stop reason.
+
+    The loop stops when those triangles alone hold more than the target
+    (:math:`(\sum \eta_K^2)^{1/2}` over them: refinement cannot bring the bound below
+    it), or when nothing else is left to mark; the reason is None otherwise.
+    """
+    limit = resolution_limit(mesh)
+    small = mesh.diameters <= limit
+    if not small.any():
+        return eta2, None
+    stuck = float(np.sqrt(eta2[small].sum()))
+    eta2 = np.where(small, 0.0, eta2)
+    where = mesh.vertices[mesh.triangles[np.argmax(np.where(small, mesh.diameters, 0.0))]]
+    x, y = where.mean(axis=0)
+    what = (
+        f"triangles at the resolution limit (diameter <= {limit:.3g}, {RESOLUTION_LIMIT:.3g} "
+        f"of the domain; {int(small.sum())} of them, e.g. near ({x:.6g}, {y:.6g})) hold "
+        f"{stuck:.4e} of the indicators"
+    )
+    if stuck > target:
+        return eta2, f"{what} > target {target:.4e}: a singularity no mesh can resolve further"
+    if not (eta2 > 0.0).any():
+        return eta2, f"{what}; nothing else is left to refine"
+    return eta2, None
+
+
+def _next_mesh(scene, result, adapt, row=None, target=None, eta2=None):
     """MARK and REFINE: (marked fraction, new scene, refinement, landing aim or None)."""
-    eta2 = indicators(result.estimate)
+    if eta2 is None:
+        eta2 = indicators(result.estimate)
     marked = dorfler_mark(eta2, adapt.theta)
     mesh = scene.mesh
     aim = None
@@ -469,9 +516,11 @@ def solve_to_tolerance(scene, options, init, timings):
         else:
             reason = _stop_before_refining(level, adapt, t_start)
         if reason is None:
+            eta2, reason = _markable(scene.mesh, indicators(result.estimate), target)
+        if reason is None:
             t1 = time.perf_counter()
             parts = dict(row, eta_mesh=mesh_part(result.estimate.totals))
-            fraction, mesh, refinement, aim = _next_mesh(scene, result, adapt, parts, target)
+            fraction, mesh, refinement, aim = _next_mesh(scene, result, adapt, parts, target, eta2)
             landing = aim is not None  # the next mesh is aimed at the target: solve it tight
             if landing:
                 landings.append({"level": level, "aim": int(aim), "vertices": mesh.n_vertices})
