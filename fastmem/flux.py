@@ -392,14 +392,14 @@ CROSS_POINT_RINGS = 3
 #: fraction of the mesh (random per-triangle tensions: nearly every vertex qualifies)
 CROSS_POINT_MAX_TRIANGLES = 20000
 CROSS_POINT_MAX_FRACTION = 0.05
-#: alternations of the ring correction with a global P1 stream-function correction
-#: (Kellogg's cross point, contrast 1e3, n = 32: eta_F / error 6.28 with the rings
-#: alone, 1.16 / 1.09 / 1.08 after 2 / 3 / 4 alternations; contrast 1e6 needs 6)
-CROSS_POINT_SWEEPS = 10
-#: the alternations stop when one gains less than this fraction of all gains so far
-CROSS_POINT_SWEEP_TOL = 1e-3
-#: the global stream-function system is factorised up to this many vertices, else AMG-CG
-CROSS_POINT_DIRECT_VERTICES = 200_000
+#: the stream functions of the correction include the global P1 ones (Kellogg's cross
+#: point, contrast 1e3, n = 32: eta_F / error 6.28 with the rings alone, 1.08 with them)
+CROSS_POINT_GLOBAL = True
+#: the joint system is factorised up to this many vertices, else solved by AMG-CG
+CROSS_POINT_DIRECT_VERTICES = 300_000
+#: relative residual and iteration cap of that CG (any iterate is a valid correction)
+CROSS_POINT_CG_TOL = 1e-6
+CROSS_POINT_CG_MAXITER = 200
 
 
 def cross_point_vertices(mesh, mu, contrast=CROSS_POINT_CONTRAST) -> np.ndarray:
@@ -543,7 +543,7 @@ def _build_cross_point_setup(mesh, mu, rings: int, i: int):
 
 
 def cross_point_correction(
-    scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RINGS, sweeps=None
+    scene, u1, u2, fluxes: Fluxes, rings=CROSS_POINT_RINGS, glob=None
 ) -> Fluxes:
     r"""Lower :math:`\eta_F` at non-quasi-monotone vertices by a divergence-free correction.
 
@@ -555,9 +555,9 @@ def cross_point_correction(
         Equilibrated fluxes (:func:`reconstruct`); not modified.
     rings : int
         Triangle rings grown around each marked vertex.
-    sweeps : int, optional
-        Alternations of the ring correction with the global one (below);
-        default :data:`CROSS_POINT_SWEEPS`, 0 for the rings alone.
+    glob : bool, optional
+        Add the global P1 stream functions to the rings' P2 ones (below);
+        default :data:`CROSS_POINT_GLOBAL`; False for the rings alone.
 
     Returns
     -------
@@ -607,30 +607,30 @@ def cross_point_correction(
     cannot increase (up to round-off) and outside :math:`\omega` nothing
     changes.
 
-    Global step (``sweeps`` > 0).  The rings cannot carry what a cross point
-    needs: the error of :math:`u_{ih}` there is Kellogg's singular function
+    Global part (``glob``).  The rings cannot carry what a cross point needs:
+    the error of :math:`u_{ih}` there is Kellogg's singular function
     (:mod:`fastmem.kellogg`), whose flux spreads over every dyadic annulus up
     to the boundary, while the patch fluxes put the whole mismatch into the
-    first ring (Kellogg, contrast 1e6, n = 32: 3.4e4 of
-    :math:`\eta_F^2` = 3.4e4 there; the best RT1 flux with the same
-    divergence has 0.27 there and about 0.11 in each annulus, against an error
-    of 0.70).  A stream function with zero values on the rings' boundary pays
-    for that with a cut-off that decays only like 1/log(rings).  So the ring
-    step alternates with the minimisation over :math:`\phi \in P_1(\Omega)`,
-    continuous, free on :math:`\partial\Omega` (normal equations: the P1
-    stiffness matrix with weight :math:`\mu_i^{-1}`, one vertex pinned), until
-    an alternation gains less than :data:`CROSS_POINT_SWEEP_TOL` of what is
-    left of :math:`\|\mu_i^{-1/2}(\mu_i\nabla u_{ih} + \sigma_{ih})\|^2`
-    (by the 3-point rule).  Together the two spaces reach the global P2 optimum (measured on
-    Kellogg's solution: η_F / error 1.165, 1.081, 1.003 at contrasts 161,
-    1e3, 1e6, n = 32, equal to the global P2 minimiser to 3 digits).  The
-    proof above holds for this :math:`\phi` too: continuous and piecewise
-    linear, so :math:`\mathrm{curl}\,\phi` is piecewise constant (in RT1),
-    divergence-free, with single-valued normal components; no boundary
-    condition is needed because the normal flux on :math:`\partial\Omega` is
-    free.  Each step is a minimisation started from 0 (an exact solve, or CG,
-    which lowers the quadratic from its first iterate on), and a step whose
-    computed gain is not positive is dropped: :math:`\eta_F` never increases.
+    first ring (Kellogg, contrast 1e6, n = 32: 3.4e4 of :math:`\eta_F^2` =
+    3.4e4 there; the best RT1 flux with the same divergence has 0.27 there and
+    about 0.11 in each annulus, against an error of 0.70).  A stream function
+    that vanishes on the rings' boundary pays for that with a cut-off that
+    decays only like 1/log(rings).  So :math:`\phi` ranges over the continuous
+    P1 functions on the whole mesh, free on :math:`\partial\Omega`, plus the
+    P2 edge bubbles of the rings (hierarchical basis: the rings' P2 space with
+    its vertex values in the P1 part), one joint SPD system with weight
+    :math:`\mu_i^{-1}` and one vertex pinned (:func:`_joint_setup`).  Measured
+    on Kellogg's solution, n = 32: η_F / error 1.165, 1.081, 1.003 at
+    contrasts 161, 1e3, 1e6, equal to the global P2 minimiser to 3 digits
+    (rings alone: 2.87, 6.28, 182).  The proof above holds for this
+    :math:`\phi`: continuous, P2 on each triangle, so :math:`\mathrm{curl}\,
+    \phi` is in RT1, divergence-free, with single-valued normal components;
+    no boundary condition is needed because the normal flux on
+    :math:`\partial\Omega` is free.  The system is solved exactly up to
+    :data:`CROSS_POINT_DIRECT_VERTICES` vertices, else by CG from 0 (which
+    lowers the quadratic from its first iterate on); a solution whose gain
+    :math:`2b^T\phi - \phi^TK\phi` is not positive is dropped, so
+    :math:`\eta_F` never increases.
 
     The regions of all marked vertices form one sparse SPD system
     (no loop over vertices); it is skipped when they cover more than
@@ -640,8 +640,8 @@ def cross_point_correction(
     """
     from .quadrature import triangle_rule
 
-    if sweeps is None:
-        sweeps = CROSS_POINT_SWEEPS
+    if glob is None:
+        glob = CROSS_POINT_GLOBAL
     mesh = scene.mesh
     coef = None
     bary, w = triangle_rule(4)
@@ -652,14 +652,10 @@ def cross_point_correction(
         if coef is None:
             coef = fluxes.coef.copy()
         u = np.asarray(u, dtype=np.float64)
-        _ring_step(mesh, coef, i, u, setup, bary, w)
-        if sweeps:
-            glob = _global_setup(scene, i)
-            for _ in range(sweeps):
-                gain, size = _global_step(mesh, coef, i, u, glob)
-                gain += _ring_step(mesh, coef, i, u, setup, bary, w)
-                if gain <= CROSS_POINT_SWEEP_TOL * size:
-                    break
+        if glob:
+            _joint_step(mesh, coef, i, u, _joint_setup(scene, i, rings, setup))
+        else:
+            _ring_step(mesh, coef, i, u, setup, bary, w)
     return fluxes if coef is None else Fluxes(mesh=mesh, coef=coef, contact=fluxes.contact)
 
 
@@ -708,81 +704,175 @@ def _ring_step(mesh, coef, i, u, setup, bary, w):
     return max(float(b[idx] @ phi[idx]), 0.0)
 
 
-def _global_setup(scene, i: int):
-    """Weighted P1 stiffness (weight 1/mu_i) on the whole mesh and its solver, cached on the scene.
+def _joint_setup(scene, i: int, rings: int, ring_setup):
+    r"""Joint system of the global P1 stream functions and the rings' edge bubbles (cached).
 
-    One vertex is pinned (a stream function is defined up to a constant).  Up
-    to :data:`CROSS_POINT_DIRECT_VERTICES` vertices a sparse LU factor, above
-    a smoothed-aggregation hierarchy for CG.
+    Unknowns: the N vertex values (vertex 0 pinned) and one bubble
+    :math:`4\lambda_j\lambda_k` per ring edge that the P2 ring space leaves free.
+    Matrix: :math:`(\mu_i^{-1}\,\mathrm{curl}\,\psi, \mathrm{curl}\,\chi)`, i.e. the
+    P1 stiffness matrix with weight :math:`\mu_i^{-1}` bordered by the bubbles'
+    rows on the ring triangles (exact with the 3-point rule: the integrands are
+    quadratic).
     """
     cache = getattr(scene, "_cache", None)
-    key = ("cross_point_global", i)
+    key = ("cross_point_joint", i, rings)
     if cache is not None and key in cache:
         return cache[key]
+    import scipy.sparse as sp
     from scipy.sparse.linalg import splu
 
     from .assembly import assemble_stiffness
+    from .quadrature import triangle_rule
 
     mesh = scene.mesh
+    n = mesh.n_vertices
     mu = np.broadcast_to(
         np.asarray((scene.mu1, scene.mu2)[i], dtype=np.float64), (mesh.n_triangles,)
     )
+    rt = ring_setup["rt"]
+    region = np.zeros(mesh.n_triangles, dtype=bool)
+    region[rt] = True
+    fixed = np.zeros(mesh.n_edges, dtype=bool)
+    fixed[mesh.triangle_edges[~region].ravel()] = True
+    te = mesh.triangle_edges[rt].astype(np.int64)  # (R, 3): edge i opposite vertex i
+    free_edges = np.flatnonzero(np.bincount(te.ravel(), minlength=mesh.n_edges) > 0)
+    free_edges = free_edges[~fixed[free_edges]]
+    bubble = np.full(mesh.n_edges, -1, dtype=np.int64)
+    bubble[free_edges] = n + np.arange(free_edges.size)
+    nb = free_edges.size
+    bary, w = triangle_rule(2)
+    g = _hier_gradients(mesh.gradients[rt], bary)  # (R, nq, 6, 2)
+    wt = mesh.areas[rt] / mu[rt]
+    kloc = np.einsum("r,q,rqid,rqjd->rij", wt, w, g, g)
+    dofs = np.concatenate([mesh.triangles[rt], bubble[te]], axis=1)  # -1: fixed bubble
+    keep = np.zeros((rt.size, 6, 6), dtype=bool)
+    keep[:, :, 3:] = dofs[:, None, 3:] >= 0
+    keep[:, 3:, :] |= dofs[:, 3:, None] >= 0
+    keep &= (dofs[:, :, None] >= 0) & (dofs[:, None, :] >= 0)
+    rows = np.broadcast_to(dofs[:, :, None], keep.shape)[keep]
+    cols = np.broadcast_to(dofs[:, None, :], keep.shape)[keep]
     a = assemble_stiffness(mesh, 1.0 / mu).tocsr()
-    inner = a[1:, 1:].tocsr()
-    if mesh.n_vertices <= CROSS_POINT_DIRECT_VERTICES:
-        lu = splu(inner.tocsc())
-        solve = lu.solve
+    k = sp.block_diag([a, sp.csr_matrix((nb, nb))], format="csr")
+    k = (k + sp.csr_matrix((kloc[keep], (rows, cols)), shape=k.shape)).tocsr()
+    inner = k[1:, 1:].tocsr()
+    if n <= CROSS_POINT_DIRECT_VERTICES:
+        solve = splu(inner.tocsc()).solve
     else:
         import pyamg
+        from scipy.sparse.linalg import LinearOperator, cg
 
-        ml = pyamg.smoothed_aggregation_solver(inner)
+        ml = pyamg.smoothed_aggregation_solver(a[1:, 1:].tocsr())
+        bb = k[n:, n:].tocsc()
+        lu_b = splu(bb) if nb else None
+        m1 = n - 1
+
+        def prec(r):
+            out = np.empty_like(r)
+            out[:m1] = ml.aspreconditioner()(r[:m1])
+            if nb:
+                out[m1:] = lu_b.solve(r[m1:])
+            return out
+
+        pre = LinearOperator(inner.shape, matvec=prec, dtype=np.float64)
 
         def solve(b):
-            return ml.solve(b, tol=1e-8, accel="cg", maxiter=100)
+            x, _ = cg(inner, b, rtol=CROSS_POINT_CG_TOL, maxiter=CROSS_POINT_CG_MAXITER, M=pre)
+            return x
 
-    setup = {"a": a, "solve": solve, "mu": mu}
+    setup = {
+        "k": k,
+        "solve": solve,
+        "mu": mu,
+        "rt": rt,
+        "dofs": dofs,
+        "n_dofs": n + nb,
+    }
     if cache is not None:
         cache[key] = setup
     return setup
 
 
-def _global_step(mesh, coef, i, u, setup):
-    r"""Minimise over continuous P1 stream functions on the whole mesh; return the gain.
+def _hier_gradients(grads, bary):
+    """Gradients of the hierarchical P2 basis (lambda_i, 4 lambda_j lambda_k): (R, nq, 6, 2)."""
+    lam = np.asarray(bary, dtype=np.float64)
+    gv = np.broadcast_to(grads[:, None, :, :], (grads.shape[0], lam.shape[0], 3, 2))
+    ge = [
+        4.0
+        * (
+            lam[None, :, j, None] * grads[:, None, k, :]
+            + lam[None, :, k, None] * grads[:, None, j, :]
+        )
+        for j, k in ((1, 2), (2, 0), (0, 1))
+    ]
+    return np.concatenate([gv, np.stack(ge, axis=2)], axis=2)
 
-    :math:`\mathrm{curl}\,\phi` is constant on each triangle, so only the
-    triangle means of :math:`s = \mu_i\nabla u_{ih} + \sigma_{ih}` enter the
-    right-hand side.  The gain :math:`2b^T\phi - \phi^TA\phi` is that of the
-    computed (possibly inexact) :math:`\phi`; the step is dropped if it is not
-    positive.  Returns the gain and :math:`\|\mu_i^{-1/2} s\|^2` before the
-    step by the 3-point rule (degree 2; for the stopping test only).
+
+def _rt1_means(mesh, c):
+    r"""Triangle means of the RT1 fields with coefficients ``c`` (M, 8) of :class:`Fluxes`.
+
+    In the scaled coordinates about the centroid the mean of xi is 0 and the
+    second moments are :math:`\frac1{12}\sum_k d_k d_k^T / h^2` (d_k the vertices
+    relative to the centroid), so sigma_x averages to ``a0 + c1 <xi^2> + c2 <xi eta>``
+    and sigma_y to ``b0 + c1 <xi eta> + c2 <eta^2>``.
+    """
+    v = mesh.vertices[mesh.triangles]
+    d = (v - v.mean(axis=1, keepdims=True)) / mesh.diameters[:, None, None]
+    xx = (d[:, :, 0] * d[:, :, 0]).sum(axis=1) / 12.0
+    xy = (d[:, :, 0] * d[:, :, 1]).sum(axis=1) / 12.0
+    yy = (d[:, :, 1] * d[:, :, 1]).sum(axis=1) / 12.0
+    return np.stack(
+        [c[:, 0] + c[:, 6] * xx + c[:, 7] * xy, c[:, 3] + c[:, 6] * xy + c[:, 7] * yy], axis=1
+    )
+
+
+def _joint_step(mesh, coef, i, u, setup):
+    r"""Minimise over the joint stream functions; add :math:`\mathrm{curl}\,\phi`; return the gain.
+
+    Right-hand side :math:`-(\mu_i^{-1} s, \mathrm{curl}\,\psi)` with
+    :math:`s = \mu_i\nabla u_{ih} + \sigma_{ih}`: for the P1 part only the
+    triangle means of s enter (its curl is constant; :func:`_rt1_means`), for the bubbles the
+    4-point-exact rule on the ring triangles (s quadratic, curl linear).
     """
     from .quadrature import quadrature_points, triangle_rule
 
-    mu = setup["mu"]
+    mu, rt, dofs = setup["mu"], setup["rt"], setup["dofs"]
     m = mesh.n_triangles
-    bary, w = triangle_rule(2)
-    x, y = quadrature_points(mesh.vertices, mesh.triangles, bary)
-    nq = x.shape[1]
-    current = Fluxes(mesh=mesh, coef=coef)
-    sig = current.evaluate(i, np.repeat(np.arange(m), nq), x.ravel(), y.ravel())
-    sig = sig.reshape(m, nq, 2)
     grads = mesh.gradients
+    current = Fluxes(mesh=mesh, coef=coef)
     gu = np.einsum("rk,rkd->rd", u[mesh.triangles], grads)
-    sq = sig + (mu[:, None] * gu)[:, None, :]
-    s = (sq * w[None, :, None]).sum(axis=1)
+    s = _rt1_means(mesh, coef[i]) + mu[:, None] * gu
     wt = mesh.areas / mu
-    size = float(((sq * sq).sum(axis=2) @ w) @ wt)
     bloc = -wt[:, None] * (s[:, 0:1] * grads[:, :, 1] - s[:, 1:2] * grads[:, :, 0])
-    b = np.bincount(mesh.triangles.ravel(), weights=bloc.ravel(), minlength=mesh.n_vertices)
-    phi = np.zeros(mesh.n_vertices)
+    b = np.zeros(setup["n_dofs"])
+    b[: mesh.n_vertices] = np.bincount(
+        mesh.triangles.ravel(), weights=bloc.ravel(), minlength=mesh.n_vertices
+    )
+    # bubbles: s at the points of a rule exact for degree 3 on the ring triangles
+    b4, w4 = triangle_rule(4)
+    xr, yr = quadrature_points(mesh.vertices, mesh.triangles[rt], b4)
+    nr = xr.shape[1]
+    sr = current.evaluate(i, np.repeat(rt, nr), xr.ravel(), yr.ravel()).reshape(rt.size, nr, 2)
+    sr = sr + (mu[rt, None] * gu[rt])[:, None, :]
+    gb = _hier_gradients(grads[rt], b4)[:, :, 3:, :]  # (R, nq, 3, 2)
+    cb = sr[..., 0:1] * gb[..., 1] - sr[..., 1:2] * gb[..., 0]  # (R, nq, 3)
+    bb = -np.einsum("r,q,rqj->rj", wt[rt], w4, cb)
+    own = dofs[:, 3:] >= 0
+    b += np.bincount(dofs[:, 3:][own], weights=bb[own], minlength=setup["n_dofs"])
+    phi = np.zeros(setup["n_dofs"])
     phi[1:] = setup["solve"](b[1:])
-    gain = 2.0 * float(b @ phi) - float(phi @ (setup["a"] @ phi))
+    gain = 2.0 * float(b @ phi) - float(phi @ (setup["k"] @ phi))
     if not gain > 0.0:
-        return 0.0, size
+        return 0.0
+    # P1 part: constant curl on every triangle
     gp = np.einsum("rk,rkd->rd", phi[mesh.triangles], grads)
-    curl = np.stack([gp[:, 1], -gp[:, 0]], axis=1)
-    _add_p1_field(coef[i], np.arange(m), None, curl, None)
-    return gain, size
+    _add_p1_field(coef[i], np.arange(m), None, np.stack([gp[:, 1], -gp[:, 0]], axis=1), None)
+    # bubbles: linear curl on the ring triangles, from its vertex values
+    pb = np.where(own, phi[np.maximum(dofs[:, 3:], 0)], 0.0)  # (R, 3)
+    gv = np.einsum("rj,rkjd->rkd", pb, _hier_gradients(grads[rt], np.eye(3))[:, :, 3:, :])
+    curl = np.stack([gv[..., 1], -gv[..., 0]], axis=-1)  # (R, 3 vertices, 2)
+    slope = np.einsum("rkc,rkd->rcd", curl, grads[rt])
+    _add_p1_field(coef[i], rt, mesh.diameters[rt], curl.mean(axis=1), slope)
+    return gain
 
 
 # --- glued contact load for the bound (issue 16, constant and per-triangle tensions) ---

@@ -90,7 +90,7 @@ def test_energy_error_identity():
 
 #: eta / exact error on Kellogg's solution, structured meshes (measured 2026-11-26 with
 #: the global stream-function correction; limits = measured + 1 %, never to be loosened).
-#: The rings alone (sweeps=0) gave 1.29 / 3.04 / 6.74 / 198 at n = 16.
+#: The rings alone (glob=False) gave 1.29 / 3.04 / 6.74 / 198 at n = 16.
 KELLOGG_EFFECTIVITY = {
     (10.0, 16, "exact"): 1.174,
     (10.0, 32, "exact"): 1.179,
@@ -135,7 +135,7 @@ def test_the_global_step_is_what_makes_it_sharp():
     scene = k.scene(mesh)
     r = fm.solve(scene, method="exact")
     base = flux.reconstruct(scene, r.u1, r.u2, r.lam)
-    rings = flux.cross_point_correction(scene, r.u1, r.u2, base, sweeps=0)
+    rings = flux.cross_point_correction(scene, r.u1, r.u2, base, glob=False)
     full = flux.cross_point_correction(scene, r.u1, r.u2, base)
     from fastmem.bound import flux_terms
 
