@@ -456,6 +456,11 @@ def _p2_gradients(grads, bary):
     """
     lam = np.asarray(bary, dtype=np.float64)  # (nq, 3)
     gv = (4.0 * lam - 1.0)[None, :, :, None] * grads[:, None, :, :]
+    return np.concatenate([gv, _bubble_gradients(grads, lam)], axis=2)
+
+
+def _bubble_gradients(grads, lam):
+    """Gradients of the edge bubbles 4 l_j l_k (edges (1, 2), (2, 0), (0, 1)): (R, nq, 3, 2)."""
     ge = [
         4.0
         * (
@@ -464,7 +469,7 @@ def _p2_gradients(grads, bary):
         )
         for j, k in ((1, 2), (2, 0), (0, 1))
     ]
-    return np.concatenate([gv, np.stack(ge, axis=2)], axis=2)
+    return np.stack(ge, axis=2)
 
 
 def _cross_point_setup(scene, i: int, rings: int):
@@ -796,15 +801,7 @@ def _hier_gradients(grads, bary):
     """Gradients of the hierarchical P2 basis (lambda_i, 4 lambda_j lambda_k): (R, nq, 6, 2)."""
     lam = np.asarray(bary, dtype=np.float64)
     gv = np.broadcast_to(grads[:, None, :, :], (grads.shape[0], lam.shape[0], 3, 2))
-    ge = [
-        4.0
-        * (
-            lam[None, :, j, None] * grads[:, None, k, :]
-            + lam[None, :, k, None] * grads[:, None, j, :]
-        )
-        for j, k in ((1, 2), (2, 0), (0, 1))
-    ]
-    return np.concatenate([gv, np.stack(ge, axis=2)], axis=2)
+    return np.concatenate([gv, _bubble_gradients(grads, lam)], axis=2)
 
 
 def _rt1_means(mesh, c):
