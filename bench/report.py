@@ -34,6 +34,7 @@ BENCHMARKS = (
     "direct_ordering",
     "adaptivity",
     "effectivity",
+    "cross_points",
     "memory",
     "coldstart",
     "sweep",
