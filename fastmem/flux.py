@@ -397,9 +397,11 @@ CROSS_POINT_MAX_FRACTION = 0.05
 CROSS_POINT_GLOBAL = True
 #: the joint system is factorised up to this many vertices, else solved by AMG-CG
 CROSS_POINT_DIRECT_VERTICES = 300_000
-#: relative residual and iteration cap of that CG (any iterate is a valid correction)
+#: relative residual and iteration cap of that CG (any iterate is a valid correction;
+#: checkerboard 1e3, n = 256: eta_F1 within 0.5 % of the minimiser after 5 iterations,
+#: within 1e-4 after 10)
 CROSS_POINT_CG_TOL = 1e-6
-CROSS_POINT_CG_MAXITER = 200
+CROSS_POINT_CG_MAXITER = 10
 
 
 def cross_point_vertices(mesh, mu, contrast=CROSS_POINT_CONTRAST) -> np.ndarray:
@@ -763,17 +765,18 @@ def _joint_setup(scene, i: int, rings: int, ring_setup):
     if n <= CROSS_POINT_DIRECT_VERTICES:
         solve = splu(inner.tocsc()).solve
     else:
-        import pyamg
         from scipy.sparse.linalg import LinearOperator, cg
 
-        ml = pyamg.smoothed_aggregation_solver(a[1:, 1:].tocsr())
+        from .amg import amg_preconditioner
+
+        ml = amg_preconditioner(a[1:, 1:].tocsr())  # the solver's SA setup and V-cycle
         bb = k[n:, n:].tocsc()
         lu_b = splu(bb) if nb else None
         m1 = n - 1
 
         def prec(r):
             out = np.empty_like(r)
-            out[:m1] = ml.aspreconditioner()(r[:m1])
+            out[:m1] = ml(r[:m1])
             if nb:
                 out[m1:] = lu_b.solve(r[m1:])
             return out
