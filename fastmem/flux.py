@@ -667,7 +667,14 @@ def cross_point_correction(
 
 
 def _add_p1_field(coef_i, rt, h, mean, slope):
-    """Add a P1 vector field (centroid value, gradient) to RT1 coefficients of triangles rt."""
+    """Add a P1 vector field (centroid value, gradient) to RT1 coefficients of triangles rt.
+
+    ``rt = None``: every triangle, in place (no gather/scatter copies).
+    """
+    if rt is None:
+        coef_i[:, 0] += mean[:, 0]
+        coef_i[:, 3] += mean[:, 1]
+        return
     c = coef_i[rt]
     c[:, 0] += mean[:, 0]
     c[:, 3] += mean[:, 1]
@@ -794,6 +801,7 @@ def _joint_setup(scene, i: int, rings: int, ring_setup):
         "rt": rt,
         "dofs": dofs,
         "n_dofs": n + nb,
+        "moments": _second_moments(mesh),
     }
     if cache is not None:
         cache[key] = setup
@@ -807,7 +815,17 @@ def _hier_gradients(grads, bary):
     return np.concatenate([gv, _bubble_gradients(grads, lam)], axis=2)
 
 
-def _rt1_means(mesh, c):
+def _second_moments(mesh):
+    """``<xi^2>, <xi eta>, <eta^2>`` per triangle in the scaled coordinates of :class:`Fluxes`."""
+    v = mesh.vertices[mesh.triangles]
+    d = (v - v.mean(axis=1, keepdims=True)) / mesh.diameters[:, None, None]
+    xx = (d[:, :, 0] * d[:, :, 0]).sum(axis=1) / 12.0
+    xy = (d[:, :, 0] * d[:, :, 1]).sum(axis=1) / 12.0
+    yy = (d[:, :, 1] * d[:, :, 1]).sum(axis=1) / 12.0
+    return xx, xy, yy
+
+
+def _rt1_means(mesh, c, moments=None):
     r"""Triangle means of the RT1 fields with coefficients ``c`` (M, 8) of :class:`Fluxes`.
 
     In the scaled coordinates about the centroid the mean of xi is 0 and the
@@ -815,11 +833,7 @@ def _rt1_means(mesh, c):
     relative to the centroid), so sigma_x averages to ``a0 + c1 <xi^2> + c2 <xi eta>``
     and sigma_y to ``b0 + c1 <xi eta> + c2 <eta^2>``.
     """
-    v = mesh.vertices[mesh.triangles]
-    d = (v - v.mean(axis=1, keepdims=True)) / mesh.diameters[:, None, None]
-    xx = (d[:, :, 0] * d[:, :, 0]).sum(axis=1) / 12.0
-    xy = (d[:, :, 0] * d[:, :, 1]).sum(axis=1) / 12.0
-    yy = (d[:, :, 1] * d[:, :, 1]).sum(axis=1) / 12.0
+    xx, xy, yy = _second_moments(mesh) if moments is None else moments
     return np.stack(
         [c[:, 0] + c[:, 6] * xx + c[:, 7] * xy, c[:, 3] + c[:, 6] * xy + c[:, 7] * yy], axis=1
     )
@@ -836,11 +850,10 @@ def _joint_step(mesh, coef, i, u, setup):
     from .quadrature import quadrature_points, triangle_rule
 
     mu, rt, dofs = setup["mu"], setup["rt"], setup["dofs"]
-    m = mesh.n_triangles
     grads = mesh.gradients
     current = Fluxes(mesh=mesh, coef=coef)
     gu = np.einsum("rk,rkd->rd", u[mesh.triangles], grads)
-    s = _rt1_means(mesh, coef[i]) + mu[:, None] * gu
+    s = _rt1_means(mesh, coef[i], setup["moments"]) + mu[:, None] * gu
     wt = mesh.areas / mu
     bloc = -wt[:, None] * (s[:, 0:1] * grads[:, :, 1] - s[:, 1:2] * grads[:, :, 0])
     b = np.zeros(setup["n_dofs"])
@@ -865,7 +878,7 @@ def _joint_step(mesh, coef, i, u, setup):
         return 0.0
     # P1 part: constant curl on every triangle
     gp = np.einsum("rk,rkd->rd", phi[mesh.triangles], grads)
-    _add_p1_field(coef[i], np.arange(m), None, np.stack([gp[:, 1], -gp[:, 0]], axis=1), None)
+    _add_p1_field(coef[i], None, None, np.stack([gp[:, 1], -gp[:, 0]], axis=1), None)
     # bubbles: linear curl on the ring triangles, from its vertex values
     pb = np.where(own, phi[np.maximum(dofs[:, 3:], 0)], 0.0)  # (R, 3)
     gv = np.einsum("rj,rkjd->rkd", pb, _hier_gradients(grads[rt], np.eye(3))[:, :, 3:, :])
