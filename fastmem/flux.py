@@ -495,7 +495,6 @@ def _cross_point_setup(scene, i: int, rings: int):
 
 def _build_cross_point_setup(mesh, mu, rings: int, i: int):
     import scipy.sparse as sp
-    from scipy.sparse.linalg import splu
 
     from .quadrature import triangle_rule
 
@@ -536,7 +535,9 @@ def _build_cross_point_setup(mesh, mu, rings: int, i: int):
     rows = np.repeat(local, 6, axis=1).ravel()
     cols = np.tile(local, (1, 6)).ravel()
     a = sp.csr_matrix((kloc.ravel(), (rows, cols)), shape=(nu, nu))
-    lu = splu(a[idx][:, idx].tocsc())
+    # factorised on the first ring step only: the default joint correction
+    # (_joint_setup) uses the region, not this matrix
+    inner = a[idx][:, idx].tocsc()
     return {
         "rt": rt,
         "tri": tri,
@@ -545,7 +546,8 @@ def _build_cross_point_setup(mesh, mu, rings: int, i: int):
         "wt": wt,
         "mu_k": mu_k,
         "n_dofs": nu,
-        "lu": lu,
+        "matrix": inner,
+        "lu": None,
     }
 
 
@@ -708,6 +710,10 @@ def _ring_step(mesh, coef, i, u, setup, bary, w):
     nu = setup["n_dofs"]
     b = np.bincount(local.ravel(), weights=bloc.ravel(), minlength=nu)
     phi = np.zeros(nu)
+    if setup["lu"] is None:
+        from scipy.sparse.linalg import splu
+
+        setup["lu"] = splu(setup.pop("matrix"))
     phi[idx] = setup["lu"].solve(b[idx])
     ph = phi[local]  # (R, 6)
     gv = np.einsum("rj,rkjd->rkd", ph, _p2_gradients(mesh.gradients[rt], np.eye(3)))
