@@ -16,6 +16,7 @@ from .errors import DataError, InputTypeError, ParameterError
 from .estimators import _oscillation, combine, contact_local_terms, global_terms, local_terms
 from .flux import Fluxes, _mu_array, cross_point_correction, reconstruct
 from .kernels import flux as _kf
+from .layers import layer_load, layer_terms
 from .linear import residuals
 from .quadrature import quadrature_points, triangle_rule
 from .result import Estimate, check_nodal, check_triple
@@ -177,8 +178,31 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     out = combine(eta_f1, eta_f2, local, glob)
     totals, maps = out if isinstance(out, tuple) else (out["totals"], out["maps"])
     maps = {"eta_F1": eta_f1, "eta_F2": eta_f2, **maps}
+    # floppy membranes (per-triangle tensions): the layer bound, when smaller (issue 16)
+    layer = layer_load(scene, u1, u2, lam)
+    if layer is not None:
+        lt, lm = _layer_bound(scene, u1, u2, lam, r1, r2, layer, local)
+        if lt["eta"] < totals["eta"]:
+            totals, maps = lt, lm
+            totals["layer_bound"] = 1.0
+        else:
+            totals["layer_bound"] = 0.0
     t2 = time.perf_counter()
     totals = {k: float(v) for k, v in totals.items()}
     totals["seconds_flux"] = t1 - t0
     totals["seconds_estimators"] = t2 - t1
     return Estimate(totals=totals, maps=maps)
+
+
+def _layer_bound(scene, u1, u2, lam, r1, r2, layer, local):
+    """Totals and maps of the layer bound of :mod:`fastmem.layers` (proof there)."""
+    fluxes = reconstruct(scene, u1, u2, lam, r1, r2, layer=layer)
+    fluxes = cross_point_correction(scene, u1, u2, fluxes)
+    eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
+    del fluxes
+    base = local_terms(scene, u1, u2, lam)  # plain c (lam hat) and the data oscillation
+    glob = global_terms(scene, u1, u2, lam, r1 + layer.eps1, r2 + layer.eps2)
+    loc = layer_terms(scene, layer, u1, u2, lam, eta_f1, eta_f2, base, glob)
+    out = combine(eta_f1, eta_f2, loc, glob)
+    totals = {k: float(v) for k, v in out["totals"].items()}
+    return totals, {"eta_F1": eta_f1, "eta_F2": eta_f2, **out["maps"]}

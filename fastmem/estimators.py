@@ -454,20 +454,29 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     g1, g2 = float(glob["eta_glob1"]), float(glob["eta_glob2"])
     c_f, mu1, mu2 = float(glob["C_F"]), float(glob["mu1"]), float(glob["mu2"])
 
+    # squeeze terms of the layer bound (fastmem.layers), zero otherwise
+    w1 = _map(local["eta_w1"], "eta_w1", m) if local.get("eta_w1") is not None else None
+    w2 = _map(local["eta_w2"], "eta_w2", m) if local.get("eta_w2") is not None else None
     d1 = osc1 + f1  # membrane 1 per triangle
     d2 = osc2 + f2  # membrane 2 per triangle, without the non-conformity
+    if w1 is not None:
+        d1 = d1 + w1
+    if w2 is not None:
+        d2 = d2 + w2
     sum_d1 = float(d1 @ d1)
     sum_d2 = float(d2 @ d2)
     d2nc = d2 + nc
     nc_total = math.sqrt(float(nc @ nc))
+    w_sq = sum(float(w @ w) for w in (w1, w2) if w is not None)
+    w_total = math.sqrt(w_sq)
     a = math.sqrt(sum_d1 + float(d2nc @ d2nc)) + math.hypot(g1, g2)
     c = float(eta_c.sum())
     root = 0.5 * (a + math.sqrt(a * a + 4.0 * c))  # positive root of x^2 = a x + c
-    eta = root + nc_total
+    eta = root + math.sqrt(nc_total**2 + w_sq)
 
     eta_alg = c_f * math.sqrt(glob["rho_norm1"] ** 2 / mu1 + glob["rho_norm2"] ** 2 / mu2)
     eta_lin = c_f * math.sqrt(1.0 / mu1 + 1.0 / mu2) * glob["lam_minus_norm"] + 2.0 * nc_total
-    eta_disc = math.sqrt(sum_d1 + sum_d2) + math.sqrt(c)
+    eta_disc = math.sqrt(sum_d1 + sum_d2) + math.sqrt(c) + w_total
     slides = math.sqrt(sum_d1 + sum_d2 + c)
 
     totals = {
@@ -491,6 +500,9 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
         "eta_nc": nc,
         "eta_C": eta_c,
     }
+    if w1 is not None or w2 is not None:
+        maps["eta_w1"] = np.zeros(m) if w1 is None else w1
+        maps["eta_w2"] = np.zeros(m) if w2 is None else w2
     logger.debug(
         "estimators: eta=%.3e disc=%.3e lin=%.3e alg=%.3e (a=%.3e c=%.3e)",
         eta,

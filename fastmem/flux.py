@@ -279,7 +279,7 @@ def contact_load(scene, fluxes, rho1, lam_minus) -> np.ndarray:
     return div - pif + rho1[tri] + lam_minus[tri]
 
 
-def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Fluxes:
+def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=None) -> Fluxes:
     """Equilibrated RT1 fluxes ``sigma_1h``, ``sigma_2h`` of any triple (docs/method.md §4).
 
     Parameters
@@ -298,6 +298,11 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
         §4); the returned ``Fluxes.contact`` then holds it (None when no vertex
         qualifies), and the bound's oscillation and c must be taken with it
         (:func:`fastmem.estimators.contact_local_terms`).
+    layer : fastmem.layers.LayerLoad, optional
+        The layer contact load (:func:`fastmem.layers.layer_load`): the patch
+        problems are solved for ``u_i + z_i`` with the contact load chi on its
+        triangles and the residuals ``r_i + eps_i``; ``redistribute`` is
+        ignored.
 
     Returns
     -------
@@ -319,6 +324,9 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
     u1, u2, lam = (np.ascontiguousarray(v, dtype=np.float64) for v in (u1, u2, lam))
     if r1 is None or r2 is None:
         r1, r2 = residuals(scene, u1, u2, lam)
+    if layer is not None:
+        redistribute = False
+        r1, r2 = r1 + layer.eps1, r2 + layer.eps2
     b = mesh.lumped_mass
     bnd = mesh.boundary_vertex_mask
     rho1 = np.where(bnd, 0.0, r1 / b)
@@ -349,6 +357,11 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True) -> Flux
         flags, gamma = contact_redistribution(scene, u1, u2, lam_i)
     else:
         flags = gamma = None
+    if layer is not None:
+        chi_row = np.full(mesh.n_triangles, -1, dtype=np.int32)
+        chi_row[layer.tri] = np.arange(len(layer.tri), dtype=np.int32)
+        chi_mom = layer.moments
+        u1, u2 = u1 + layer.z1, u2 + layer.z2
     coef = _kf.reconstruct_colored(
         order,
         color_ptr,
