@@ -338,3 +338,17 @@ def finish(name, payload, quick):
 def progress(msg):
     sys.stderr.write(msg + "\n")
     sys.stderr.flush()
+
+
+def keep_sections(name, only, quick, payload):
+    """With ``--only SECTION``: the earlier run's payload of ``name`` updated with ``payload``."""
+    if only is None:
+        return payload
+    from bench.report import load
+
+    return {**(load(name, quick) or {}), **payload}
+
+
+def section_rows(payload, keys):
+    """The rows of the sections ``keys`` of a payload, each tagged with its section."""
+    return [{"section": key, **row} for key in keys for row in payload.get(key, [])]

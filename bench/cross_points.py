@@ -35,8 +35,15 @@ import time
 
 import numpy as np
 
-from bench._common import finish, parse, parser, progress
-from bench.effectivity import checkerboard, energy, prolong, two_materials
+from bench._common import finish, keep_sections, parse, parser, progress, section_rows
+from bench.effectivity import (
+    checkerboard,
+    energy,
+    error_vs_reference,
+    prolong,
+    reference_chain,
+    two_materials,
+)
 
 KELLOGG_CONTRASTS = (10.0, 161.4476387975881, 1e3, 1e6)
 CHECKER = ((1e3, (-1.0, 1.0)), (1e3, (-4.0, 2.0)), (1e6, (-1.0, 1.0)), (1e-3, (-1.0, 1.0)))
@@ -99,26 +106,19 @@ def run_kellogg(sizes):
     return rows
 
 
-def run_checkerboard(sizes, ref_levels):
+def run_checkerboard(sizes, levels):
     import fastmem as fm
 
     rows = []
     for c, f in CHECKER:
-        chain = [fm.Mesh.square(sizes[0])]
-        for _ in range(int(round(np.log2(sizes[-1] / sizes[0]))) + ref_levels):
-            chain.append(chain[-1].refine())
+        chain, ref_scene, ref = reference_chain(fm.Mesh.square, checkerboard, c, f, sizes, levels)
         fine = chain[-1]
-        ref_scene = fm.Scene(fine, mu=(checkerboard(fine, c), 1.0), f=f, g=0.1)
-        ref = fm.solve(ref_scene, method="exact-amg", estimate=True)
         for n in sizes:
             k = int(round(np.log2(n / sizes[0])))
             mesh = chain[k]
             scene = fm.Scene(mesh, mu=(checkerboard(mesh, c), 1.0), f=f, g=0.1)
             r = fm.solve(scene, method="exact", estimate=True)
-            u1, u2 = r.u1, r.u2
-            for m in chain[k:-1]:
-                u1, u2 = prolong(m, u1), prolong(m, u2)
-            err = energy(fine, (ref_scene.mu1, 1.0), ref.u1 - u1, ref.u2 - u2)
+            err = error_vs_reference(chain, k, r.u1, r.u2, ref_scene, ref)
             rings = _eta(scene, r, False)
             hi = float(np.hypot(err, ref.eta))
             rows.append(
@@ -276,10 +276,7 @@ def main(argv=None):
     t0 = time.perf_counter()
     sizes = args.sizes or ([8, 16] if args.quick else [16, 32, 64, 128])
     payload = {"parameters": {"sizes": sizes, "ref_levels": args.ref_levels, "quick": args.quick}}
-    if args.only is not None:  # keep the other sections of an earlier run
-        from bench.report import load
-
-        payload = {**(load("cross_points", args.quick) or {}), **payload}
+    payload = keep_sections("cross_points", args.only, args.quick, payload)
     if args.only in (None, "kellogg"):
         payload["kellogg"] = run_kellogg(sizes)
     if args.only in (None, "checkerboard"):
@@ -289,11 +286,7 @@ def main(argv=None):
         payload["adaptive"] = run_adaptive()
     if args.only in (None, "cost"):
         payload["cost"] = run_cost([32] if args.quick else [256, 512], args.repeat)
-    payload["rows"] = [
-        {"section": key, **row}
-        for key in ("kellogg", "checkerboard", "adaptive", "cost")
-        for row in payload.get(key, [])
-    ]
+    payload["rows"] = section_rows(payload, ("kellogg", "checkerboard", "adaptive", "cost"))
     payload["seconds"] = time.perf_counter() - t0
     finish("cross_points", payload, args.quick)
 

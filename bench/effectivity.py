@@ -96,6 +96,27 @@ def energy(fine, mu, e1, e2):
     return float(np.sqrt(max(out, 0.0)))
 
 
+def reference_chain(make, mu_of, c, f, sizes, levels, method="exact-amg"):
+    """Meshes ``make(sizes[0])`` refined up to ``levels`` beyond ``sizes[-1]``, and the
+    reference result on the finest: ``(chain, ref_scene, ref)`` (mu1 = mu_of(mesh, c), mu2 = 1,
+    g = 0.1)."""
+    import fastmem as fm
+
+    chain = [make(sizes[0])]
+    for _ in range(int(round(np.log2(sizes[-1] / sizes[0]))) + levels):
+        chain.append(chain[-1].refine())
+    fine = chain[-1]
+    ref_scene = fm.Scene(fine, mu=(mu_of(fine, c), 1.0), f=f, g=0.1)
+    return chain, ref_scene, fm.solve(ref_scene, method=method, estimate=True)
+
+
+def error_vs_reference(chain, k, u1, u2, ref_scene, ref):
+    """Energy error of (u1, u2) on ``chain[k]`` against the reference on ``chain[-1]``."""
+    for m in chain[k:-1]:
+        u1, u2 = prolong(m, u1), prolong(m, u2)
+    return energy(chain[-1], (ref_scene.mu1, 1.0), ref.u1 - u1, ref.u2 - u2)
+
+
 def eta_projected(scene, r):
     """The bound of result r with the projected redistribution (before the glued load).
 

@@ -35,6 +35,7 @@ BENCHMARKS = (
     "adaptivity",
     "effectivity",
     "cross_points",
+    "layers",
     "memory",
     "coldstart",
     "sweep",

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 
+from . import layers as _layers
 from .errors import DataError, InputTypeError, ParameterError
 from .estimators import _oscillation, combine, contact_local_terms, global_terms, local_terms
 from .flux import Fluxes, _mu_array, cross_point_correction, reconstruct
@@ -179,7 +180,7 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     totals, maps = out if isinstance(out, tuple) else (out["totals"], out["maps"])
     maps = {"eta_F1": eta_f1, "eta_F2": eta_f2, **maps}
     # floppy membranes (per-triangle tensions): the layer bound, when smaller (issue 16)
-    layer = layer_load(scene, u1, u2, lam)
+    layer = layer_load(scene, u1, u2, lam) if _layers.LAYER_BOUND else None
     if layer is not None:
         lt, lm = _layer_bound(scene, u1, u2, lam, r1, r2, layer, local)
         if lt["eta"] < totals["eta"]:

@@ -199,7 +199,7 @@ def test_contact_load_nonnegative_and_c_not_larger(name, monkeypatch):
     The glued bound itself: the layer bound (fastmem.layers), which evaluate returns
     when it is smaller, trades c for the squeeze terms and is tested in test_layers.
     """
-    monkeypatch.setattr(fm.bound, "layer_load", lambda *a: None)
+    monkeypatch.setattr(fm.layers, "LAYER_BOUND", False)
     scene, u1, u2, lam, r1, r2, contact, fl = case(name)
     mesh = scene.mesh
     cal = callable(scene.f1) or callable(scene.f2)

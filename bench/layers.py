@@ -1,0 +1,166 @@
+"""Floppy membranes: the layer bound's effectivity and cost (issue 16, :mod:`fastmem.layers`).
+
+Three sections, written to ``bench/results/layers.json``:
+
+* ``checkerboard``: mu1 in {1, c} on 4 x 4 squares, mu2 = 1, g = 0.1 (the scene
+  of bench/effectivity.py), exact solves, n = 16 ... 64 against a solution
+  ``--ref-levels`` refinements finer.  For each triple: the bound as returned
+  (the smaller of the layer bound and the standard one), the standard bound
+  alone (``fastmem.layers.LAYER_BOUND = False``), the reference error and the
+  bracket of the true effectivity that the reference allows,
+  [eta / (err_ref^2 + eta_ref^2)^(1/2), eta / err_ref] (eta_ref: the
+  reference's own bound; Galerkin orthogonality, approximate with contact).
+  Note: no reference resolves the floppy layer (width 4.5e-4 for c = 1e-6),
+  so err_ref misses its energy and eta / err_ref overstates the effectivity.
+* ``lshape``: the two-material L-shape (mu1 = 1 for x < 0, c for x > 0), the
+  same columns.
+* ``cost``: seconds of the whole bound (``fastmem.bound.estimate``) with and
+  without the layer bound on the same triple, alternating, first call and
+  median of ``--repeat``.
+
+``--only SECTION`` re-runs one section and keeps the others of the existing file.
+
+    python -m bench.layers [--quick] [--repeat 5] [--ref-levels 3]
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+import numpy as np
+
+from bench._common import finish, keep_sections, parse, parser, progress, section_rows
+from bench.effectivity import checkerboard, error_vs_reference, reference_chain, two_materials
+
+CHECKER = tuple((c, f) for c in (1e-6, 1e-3, 1e3, 1e6) for f in ((-1.0, 1.0), (-4.0, 2.0)))
+LSHAPE = (1e-6, 1e-3)
+
+
+def _bounds(scene, r):
+    """(eta as returned, standard eta, layer used) of a solved triple."""
+    import fastmem.layers as fl
+    from fastmem.bound import estimate
+
+    est = estimate(scene, r.u1, r.u2, r.lam)
+    fl.LAYER_BOUND = False
+    try:
+        plain = estimate(scene, r.u1, r.u2, r.lam)
+    finally:
+        fl.LAYER_BOUND = True
+    return est.totals["eta"], plain.totals["eta"], bool(est.totals.get("layer_bound", 0.0))
+
+
+def _table(family, cases, sizes, ref_levels):
+    import fastmem as fm
+
+    make = fm.Mesh.square if family == "checkerboard" else fm.Mesh.lshape
+    mu_of = checkerboard if family == "checkerboard" else two_materials
+    rows = []
+    for c, f in cases:
+        # direct solve: with mu = 1e-6 an iterative reference's own bound is its algebraic
+        # error times 1e3 (eta_alg), which would make the bracket useless
+        chain, ref_scene, ref = reference_chain(make, mu_of, c, f, sizes, ref_levels, "exact")
+        fine = chain[-1]
+        for n in sizes:
+            k = int(round(np.log2(n / sizes[0])))
+            mesh = chain[k]
+            scene = fm.Scene(mesh, mu=(mu_of(mesh, c), 1.0), f=f, g=0.1)
+            r = fm.solve(scene, method="exact", estimate=False)
+            eta, plain, used = _bounds(scene, r)
+            err = error_vs_reference(chain, k, r.u1, r.u2, ref_scene, ref)
+            hi = float(np.hypot(err, ref.eta))
+            rows.append(
+                {
+                    "family": family,
+                    "c": c,
+                    "f": list(f),
+                    "n": n,
+                    "ref_vertices": fine.n_vertices,
+                    "err_ref": err,
+                    "eta_ref": float(ref.eta),
+                    "eta": eta,
+                    "eta_standard": plain,
+                    "layer_bound_used": used,
+                    "effectivity_vs_ref": eta / err,
+                    "effectivity_bracket": [eta / hi, eta / err],
+                    "standard_effectivity_vs_ref": plain / err,
+                }
+            )
+            progress(
+                f"  {family} c={c:g} f={f} n={n}: eta/err_ref {eta / err:.3f} "
+                f"(standard {plain / err:.3f}), bracket [{eta / hi:.3f}, {eta / err:.3f}]"
+            )
+    return rows
+
+
+def run_cost(sizes, repeat):
+    import fastmem as fm
+    import fastmem.layers as fl
+    from fastmem.bound import estimate
+
+    rows = []
+    for c, f in ((1e-6, (-1.0, 1.0)), (1e-3, (-1.0, 1.0))):
+        for n in sizes:
+            mesh = fm.Mesh.square(n)
+            scene = fm.Scene(mesh, mu=(checkerboard(mesh, c), 1.0), f=f, g=0.1)
+            r = fm.solve(scene, method="exact-amg")
+
+            def run(layer, scene=scene, r=r):
+                fl.LAYER_BOUND = layer
+                try:
+                    t = time.perf_counter()
+                    estimate(scene, r.u1, r.u2, r.lam)
+                    return time.perf_counter() - t
+                finally:
+                    fl.LAYER_BOUND = True
+
+            first = {"standard": run(False), "with_layer": run(True)}
+            times = {"standard": [], "with_layer": []}
+            for _ in range(repeat):
+                times["standard"].append(run(False))
+                times["with_layer"].append(run(True))
+            med = {k: statistics.median(v) for k, v in times.items()}
+            rows.append(
+                {
+                    "scene": f"checkerboard {c:g}, f = {f}",
+                    "n": n,
+                    "vertices": mesh.n_vertices,
+                    "first_seconds": first,
+                    "median_seconds": med,
+                    "bound_with_layer_over_standard": med["with_layer"] / med["standard"],
+                }
+            )
+            progress(
+                f"  cost c={c:g} n={n}: standard {med['standard']:.3f} s, with layer "
+                f"{med['with_layer']:.3f} s (first {first['with_layer']:.3f} s)"
+            )
+    return rows
+
+
+def main(argv=None):
+    p = parser(__doc__, repeat=5)
+    p.add_argument("--ref-levels", type=int, default=3)
+    p.add_argument("--only", choices=("checkerboard", "lshape", "cost"), default=None)
+    args = parse(p, argv)
+    t0 = time.perf_counter()
+    sizes = args.sizes or ([8] if args.quick else [16, 32, 64])
+    levels = 1 if args.quick else args.ref_levels
+    payload = {"parameters": {"sizes": sizes, "ref_levels": levels, "quick": args.quick}}
+    payload = keep_sections("layers", args.only, args.quick, payload)
+    if args.only in (None, "checkerboard"):
+        cases = CHECKER[:1] if args.quick else CHECKER
+        payload["checkerboard"] = _table("checkerboard", cases, sizes, levels)
+    if args.only in (None, "lshape"):
+        cases = [(c, (-1.0, 1.0)) for c in (LSHAPE[:1] if args.quick else LSHAPE)]
+        payload["lshape"] = _table("lshape", cases, sizes, levels)
+    if args.only in (None, "cost"):
+        repeat = 1 if args.quick else args.repeat
+        payload["cost"] = run_cost([16] if args.quick else [256, 512], repeat)
+    payload["rows"] = section_rows(payload, ("checkerboard", "lshape", "cost"))
+    payload["seconds"] = time.perf_counter() - t0
+    finish("layers", payload, args.quick)
+
+
+if __name__ == "__main__":
+    main()
