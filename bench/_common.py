@@ -344,9 +344,9 @@ def keep_sections(name, only, quick, payload):
     """With ``--only SECTION``: the earlier run's payload of ``name`` updated with ``payload``."""
     if only is None:
         return payload
-    from bench.report import load
-
-    return {**(load(name, quick) or {}), **payload}
+    path = Path(results_dir()) / f"{result_name(name, quick)}.json"
+    earlier = json.loads(path.read_text()) if path.exists() else {}
+    return {**earlier, **payload}
 
 
 def section_rows(payload, keys):

@@ -94,6 +94,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .estimators import refinement_indicators
 from .kernels import nvb as _kn
 from .levels import solve_levels
 from .refine import _refinement_edges, dorfler_mark, refine_marked
@@ -133,16 +134,9 @@ _INT_COLUMNS = frozenset({"level", "n_vertices", "n_triangles", "newton", "inner
 
 def indicators(estimate) -> np.ndarray:
     r"""Per-triangle refinement indicators :math:`\eta_K^2` of an estimate (module docstring)."""
-    m = estimate.maps
-    out = (
-        (m["eta_osc1"] + m["eta_F1"]) ** 2
-        + (m["eta_osc2"] + m["eta_F2"]) ** 2
-        + m["eta_nc"] ** 2
-        + m["eta_C"]
-    )
-    if "eta_w1" in m:  # the layer bound's squeeze terms (fastmem.layers)
-        out = out + m["eta_w1"] ** 2 + m["eta_w2"] ** 2
-    return out
+    if getattr(estimate, "marking", None) is not None:
+        return estimate.marking
+    return refinement_indicators(estimate.maps)
 
 
 def energy_norm(scene: Scene, u1, u2) -> float:

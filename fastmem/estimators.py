@@ -513,3 +513,21 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
         c,
     )
     return {"totals": totals, "maps": maps}
+
+
+def refinement_indicators(maps) -> np.ndarray:
+    r"""Per-triangle refinement indicators :math:`\eta_K^2` from estimator maps.
+
+    :math:`\sum_i (\eta_{osc,K,i} + \eta_{F,K,i})^2 + \eta_{nc,K}^2 + \eta_{C,K}`,
+    plus the squeeze terms :math:`\eta_{w,K,1}^2 + \eta_{w,K,2}^2` of the layer
+    bound when the maps have them (:mod:`fastmem.layers`).
+    """
+    out = (
+        (maps["eta_osc1"] + maps["eta_F1"]) ** 2
+        + (maps["eta_osc2"] + maps["eta_F2"]) ** 2
+        + maps["eta_nc"] ** 2
+        + maps["eta_C"]
+    )
+    if "eta_w1" in maps:
+        out = out + maps["eta_w1"] ** 2 + maps["eta_w2"] ** 2
+    return out

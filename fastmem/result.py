@@ -126,6 +126,12 @@ class Estimate:
         the diagnostics (see :attr:`components` and :attr:`diagnostics`).
     maps : dict of str to ndarray of shape (M,)
         Per-triangle indicator maps (e.g. ``eta_F1``, ``eta_C``), kept for adaptivity.
+    marking : ndarray of shape (M,) or None
+        Refinement indicators to mark with when they are not those of ``maps``:
+        when the layer bound (:mod:`fastmem.layers`) is the smaller, ``eta`` and
+        ``maps`` are its own and ``marking`` holds the standard bound's
+        ``eta_K^2``, which refine the layers better (docs/heterogeneous.md
+        §11).  Not stored in archives.
 
     Notes
     -----
@@ -137,6 +143,7 @@ class Estimate:
 
     totals: dict = field(default_factory=dict)
     maps: dict = field(default_factory=dict)
+    marking: np.ndarray | None = None
 
     def __post_init__(self):
         from .errors import NumericalError

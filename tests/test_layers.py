@@ -171,3 +171,33 @@ def test_layer_bound_guaranteed_for_perturbed_triples():
         used += est.totals.get("layer_bound", 0.0) == 1.0
         assert est.totals["eta"] >= _energy_error(chain, ref, u1, u2, 1e-6), scale
     assert used >= 1  # the layer path itself was exercised
+
+
+def test_amg_path_of_the_corrections_matches_the_direct_one(monkeypatch):
+    """Above LAYER_DIRECT_VERTICES the z solves run by AMG-CG: the same bound to 1e-6."""
+    scene = _floppy(16)
+    res = fm.solve(scene, method="exact", estimate=False)
+    direct = bound.estimate(scene, res.u1, res.u2, res.lam)
+    monkeypatch.setattr(fm.layers, "LAYER_DIRECT_VERTICES", 0)
+    scene._cache.pop(("layer_solver", 1), None)
+    scene._cache.pop(("layer_solver", 2), None)
+    amg = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert amg.totals["layer_bound"] == 1.0
+    assert abs(amg.totals["eta"] - direct.totals["eta"]) <= 1e-6 * direct.totals["eta"]
+
+
+def test_marking_keeps_the_standard_indicators(monkeypatch):
+    """When the layer bound wins, adaptivity still marks with the standard bound's eta_K^2."""
+    from fastmem.afem import indicators
+
+    scene = _floppy(8)
+    res = fm.solve(scene, method="exact", estimate=False)
+    est = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert est.totals["layer_bound"] == 1.0
+    monkeypatch.setattr(fm.layers, "LAYER_BOUND", False)
+    plain = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert plain.marking is None
+    np.testing.assert_array_equal(indicators(est), indicators(plain))
+    # the maps are the layer bound's own: with the squeeze terms
+    assert "eta_w1" in est.maps
+    assert "eta_w1" not in plain.maps
