@@ -166,7 +166,14 @@ def _transfer_mu(mu, fine, coarse, cmap):
         return np.asarray(mu)[cmap.triangle]
     if fine.parent is coarse:  # red refinement: children of t are 4t .. 4t+3
         return np.asarray(mu).reshape(-1, 4).mean(axis=1)
-    return None
+    # another coarser mesh of the domain (the structured generators): the fine triangle
+    # under each coarse centroid, as for the auxiliary meshes.  The coarse levels only
+    # give the initial guess; without them Newton-min moves the contact front about one
+    # cell per step (checkerboard c = 1e-3: 39 steps at n = 256, 71 at n = 512)
+    tri, _ = locate(fine, coarse.vertices[coarse.triangles].mean(axis=1))
+    if (tri < 0).any():
+        return None
+    return np.asarray(mu)[tri]
 
 
 def _transfer_nodal(value, fine, coarse, cmap):
