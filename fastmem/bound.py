@@ -214,6 +214,11 @@ def _layer_bound(scene, u1, u2, lam, r1, r2, layer, local):
     eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
     del fluxes
     base = local_terms(scene, u1, u2, lam)  # plain c (lam hat) and the data oscillation
+    if layer.osc_rows is not None:  # callable loads: the pointwise pressure's oscillation
+        base["eta_osc1"] = np.array(base["eta_osc1"], dtype=np.float64)
+        base["eta_osc2"] = np.array(base["eta_osc2"], dtype=np.float64)
+        base["eta_osc1"][layer.osc_rows] = layer.osc1
+        base["eta_osc2"][layer.osc_rows] = layer.osc2
     glob = global_terms(scene, u1, u2, lam, r1 + layer.eps1, r2 + layer.eps2)
     loc = layer_terms(scene, layer, u1, u2, lam, eta_f1, eta_f2, base, glob)
     out = combine(eta_f1, eta_f2, loc, glob)

@@ -124,6 +124,9 @@ class LayerLoad:
         Triangles squeezed (rows of ``tri`` with a positive gap, no negative one).
     soft : int8 (Q,)
         The membrane squeezed there (1 or 2).
+    osc_rows, osc1, osc2 : ndarray or None
+        Callable loads: the closed triangles whose pressure is the pointwise glued
+        one, and there the oscillations of ``f1 + chi`` and ``f2 - chi``.
     """
 
     tri: np.ndarray
@@ -135,6 +138,9 @@ class LayerLoad:
     eps2: np.ndarray
     squeeze: np.ndarray
     soft: np.ndarray
+    osc_rows: np.ndarray | None = None
+    osc1: np.ndarray | None = None
+    osc2: np.ndarray | None = None
 
 
 def _projected_load(scene, i):
@@ -199,6 +205,16 @@ def layer_load(scene, u1, u2, lam) -> LayerLoad | None:
 
     mom = np.einsum("sk,ikj->sij", chi_s, _T3) - lam_k[:, :, None] * ((np.eye(3) + 1.0) / 12.0)
     mom *= area[:, None, None]
+    osc1 = osc2 = None
+    closed_rows = np.flatnonzero(closed[sel])
+    if closed_rows.size and "callable" in (scene.data_kind("f1"), scene.data_kind("f2")):
+        # callable loads: on the closed triangles (where c vanishes whatever the load's
+        # form) the pressure is the glued one pointwise, not its P1 projection, so that
+        # f1 + chi = mu1 (f1 + f2) / (mu1 + mu2) is what the soft membrane's oscillation
+        # (weight mu_soft^-1/2) measures; moments and oscillation at the load rule's points
+        mom[closed_rows], osc1, osc2 = _pointwise_closed(
+            scene, sel[closed_rows], mu1, mu2, lam_k[closed_rows]
+        )
     delta = np.bincount(t[sel].ravel(), weights=mom.sum(axis=2).ravel(), minlength=mesh.n_vertices)
     bnd = mesh.boundary_vertex_mask
     delta[bnd] = 0.0
@@ -217,7 +233,36 @@ def layer_load(scene, u1, u2, lam) -> LayerLoad | None:
         eps2=eps2,
         squeeze=squeeze.astype(np.int32),
         soft=soft_id,
+        osc_rows=None if osc1 is None else sel[closed_rows],
+        osc1=osc1,
+        osc2=osc2,
     )
+
+
+def _pointwise_closed(scene, tri, mu1, mu2, lam_k):
+    """Moments ``((chi - lam_a) psi_a, psi_j)_K`` and oscillations of ``f1 + chi``, ``f2 - chi``.
+
+    With the pointwise glued pressure ``chi = (mu1 f2 - mu2 f1)^+ / (mu1 + mu2)`` at the
+    points of the load rule (degree ``scene.load_degree``) of the triangles ``tri``.
+    """
+    from .flux import _load_values, _oscillation_at_points
+    from .quadrature import quadrature_points
+
+    mesh = scene.mesh
+    bary, w = triangle_rule(scene.load_degree)
+    x, y = quadrature_points(mesh.vertices, mesh.triangles[tri], bary)
+    f1 = _load_values(scene, 1, tri, x, y, bary)
+    f2 = _load_values(scene, 2, tri, x, y, bary)
+    m1, m2 = mu1[tri, None], mu2[tri, None]
+    chi = np.maximum(m1 * f2 - m2 * f1, 0.0) / (m1 + m2)
+    area = mesh.areas[tri]
+    # (chi psi_i, psi_j)_K = |K| sum_q w_q chi_q b_qi b_qj
+    mom = np.einsum("sq,qi,qj->sij", chi * w, bary, bary) * area[:, None, None]
+    mom -= lam_k[:, :, None] * ((np.eye(3) + 1.0) / 12.0) * area[:, None, None]
+    h = mesh.diameters[tri] / np.pi
+    osc1 = h / np.sqrt(mu1[tri]) * _oscillation_at_points(f1 + chi, bary, w, area)
+    osc2 = h / np.sqrt(mu2[tri]) * _oscillation_at_points(f2 - chi, bary, w, area)
+    return mom, osc1, osc2
 
 
 def _solve(scene, i, rhs):

@@ -226,3 +226,40 @@ def test_floppy_second_membrane_is_squeezed_upwards():
     # the error: membrane 2 carries the checkerboard here
     err = _energy_error(chain, ref, res.u1, res.u2, None, (1.0, _checkerboard(chain[-1], 1e-6)))
     assert err <= est.eta <= 1.87 * err  # 1.849 measured (the mirror of the mu1 case)
+
+
+def test_callable_loads_pointwise_pressure_on_closed_triangles(monkeypatch):
+    """Callable loads: eta >= error, and the soft membrane's oscillation on the closed
+    triangles is that of mu1 (f1 + f2) / (mu1 + mu2), far below that of f1."""
+
+    def f1(x, y):
+        return -1.0 - 0.5 * np.sin(3 * x) * np.cos(2 * y)
+
+    def f2(x, y):
+        return 1.0 + 0.3 * x * y
+
+    chain = [fm.Mesh.square(8)]
+    for _ in range(3):
+        chain.append(chain[-1].refine())
+
+    def make(m):
+        return fm.Scene(m, mu=(_checkerboard(m, 1e-6), 1.0), f=(f1, f2), g=0.1)
+
+    ref = fm.solve(make(chain[-1]), method="exact")
+    scene = make(chain[0])
+    res = fm.solve(scene, method="exact", estimate=False)
+    est = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert est.totals["layer_bound"] == 1.0
+    assert est.eta >= _energy_error(chain, ref, res.u1, res.u2, 1e-6)
+    lam = np.where(scene.mesh.boundary_vertex_mask, 0.0, res.lam)
+    layer = fm.layers.layer_load(scene, res.u1, res.u2, lam)
+    assert layer.osc_rows is not None
+    monkeypatch.setattr(fm.layers, "LAYER_BOUND", False)
+    plain = bound.estimate(scene, res.u1, res.u2, res.lam)
+    rows = layer.osc_rows
+    floppy = _checkerboard(scene.mesh, 1e-6)[rows] < 1.0
+    assert floppy.any()
+    # data oscillation weighted by 1e3 against that of mu1 (f1 + f2) / (mu1 + mu2)
+    mine = np.linalg.norm(layer.osc1[floppy])
+    data = np.linalg.norm(plain.maps["eta_osc1"][rows][floppy])
+    assert mine <= 1e-3 * data  # measured 9.8e-7: the ratio mu1 / (mu1 + mu2)
