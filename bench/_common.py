@@ -352,3 +352,11 @@ def keep_sections(name, only, quick, payload):
 def section_rows(payload, keys):
     """The rows of the sections ``keys`` of a payload, each tagged with its section."""
     return [{"section": key, **row} for key in keys for row in payload.get(key, [])]
+
+
+def sectioned_parser(doc, sections, repeat=5):
+    """:func:`parser` with ``--ref-levels`` and ``--only SECTION`` (benchmarks in sections)."""
+    p = parser(doc, repeat=repeat)
+    p.add_argument("--ref-levels", type=int, default=3)
+    p.add_argument("--only", choices=sections, default=None)
+    return p

@@ -35,7 +35,7 @@ import time
 
 import numpy as np
 
-from bench._common import finish, keep_sections, parse, parser, progress, section_rows
+from bench._common import finish, keep_sections, parse, progress, section_rows, sectioned_parser
 from bench.effectivity import (
     checkerboard,
     energy,
@@ -269,9 +269,7 @@ def run_cost(sizes, repeat):
 
 
 def main(argv=None):
-    p = parser(__doc__, repeat=5)
-    p.add_argument("--ref-levels", type=int, default=3)
-    p.add_argument("--only", choices=("kellogg", "checkerboard", "adaptive", "cost"), default=None)
+    p = sectioned_parser(__doc__, ("kellogg", "checkerboard", "adaptive", "cost"))
     args = parse(p, argv)
     t0 = time.perf_counter()
     sizes = args.sizes or ([8, 16] if args.quick else [16, 32, 64, 128])

@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from bench._common import finish, keep_sections, parse, parser, progress, section_rows
+from bench._common import finish, keep_sections, parse, progress, section_rows, sectioned_parser
 from bench.effectivity import checkerboard, error_vs_reference, reference_chain, two_materials
 
 CHECKER = tuple((c, f) for c in (1e-6, 1e-3, 1e3, 1e6) for f in ((-1.0, 1.0), (-4.0, 2.0)))
@@ -139,9 +139,7 @@ def run_cost(sizes, repeat):
 
 
 def main(argv=None):
-    p = parser(__doc__, repeat=5)
-    p.add_argument("--ref-levels", type=int, default=3)
-    p.add_argument("--only", choices=("checkerboard", "lshape", "cost"), default=None)
+    p = sectioned_parser(__doc__, ("checkerboard", "lshape", "cost"))
     args = parse(p, argv)
     t0 = time.perf_counter()
     sizes = args.sizes or ([8] if args.quick else [16, 32, 64])

@@ -179,6 +179,7 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
         local = local_terms(scene, u1, u2, lam)
     elif local.get("eta_osc1") is None or local.get("eta_osc2") is None:
         local = {**local, "eta_osc1": _oscillation(scene, 1), "eta_osc2": _oscillation(scene, 2)}
+    plain_local = local  # lam hat's c and the data oscillation: the layer bound's base
     if contact is not None:
         local = contact_local_terms(scene, u1, u2, lam, contact, local)
     if glob is None:
@@ -190,7 +191,7 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     marking = None
     layer = layer_load(scene, u1, u2, lam) if _layers.LAYER_BOUND else None
     if layer is not None:
-        lt, lm = _layer_bound(scene, u1, u2, lam, r1, r2, layer, local)
+        lt, lm = _layer_bound(scene, u1, u2, lam, r1, r2, layer, plain_local)
         if lt["eta"] < totals["eta"]:
             # mark with the standard bound's indicators: driven by the layer bound's, the
             # adaptive loop leaves the layers unresolved longer (checkerboard 1e-3, tol 3e-2:
@@ -213,7 +214,7 @@ def _layer_bound(scene, u1, u2, lam, r1, r2, layer, local):
     fluxes = cross_point_correction(scene, u1, u2, fluxes)
     eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
     del fluxes
-    base = local_terms(scene, u1, u2, lam)  # plain c (lam hat) and the data oscillation
+    base = dict(local)  # plain c (lam hat) and the data oscillation
     if layer.osc_rows is not None:  # callable loads: the pointwise pressure's oscillation
         base["eta_osc1"] = np.array(base["eta_osc1"], dtype=np.float64)
         base["eta_osc2"] = np.array(base["eta_osc2"], dtype=np.float64)

@@ -75,6 +75,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .estimators import _lambda_parts
 from .quadrature import triangle_rule
 
 __all__ = [
@@ -395,7 +396,7 @@ def layer_terms(scene, layer: LayerLoad, u1, u2, lam, eta_f1, eta_f2, local, glo
     mesh = scene.mesh
     m = mesh.n_triangles
     gap = u1 - u2
-    _, lam_minus = _lambda_minus(mesh, lam)
+    _, lam_minus = _lambda_parts(mesh, lam)
     eta_c = np.array(local["eta_C"], dtype=np.float64)
     eta_c[layer.tri] = 0.0  # closed triangles: the gap is <= 0 on K, the product vanishes
     q = layer.squeeze
@@ -455,9 +456,3 @@ def layer_terms(scene, layer: LayerLoad, u1, u2, lam, eta_f1, eta_f2, local, glo
     eta_w2[q[~on1]] = wk[~on1]
     eta_c[q] = c_all[np.arange(q.size), k]
     return {**local, "eta_C": eta_c, "eta_w1": eta_w1, "eta_w2": eta_w2}
-
-
-def _lambda_minus(mesh, lam):
-    lam = np.where(mesh.boundary_vertex_mask, 0.0, lam)
-    hat = np.maximum(lam, 0.0)
-    return hat, hat - lam
