@@ -189,7 +189,7 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     maps = {"eta_F1": eta_f1, "eta_F2": eta_f2, **maps}
     # floppy membranes (per-triangle tensions): the layer bound, when smaller (issue 16)
     marking = None
-    layer = layer_load(scene, u1, u2, lam) if _layers.LAYER_BOUND else None
+    layer = layer_load(scene, u1, u2, lam, r1, r2) if _layers.LAYER_BOUND else None
     if layer is not None:
         lt, lm = _layer_bound(scene, u1, u2, lam, r1, r2, layer, plain_local)
         if lt["eta"] < totals["eta"]:

@@ -362,6 +362,18 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=N
         chi_row[layer.tri] = np.arange(len(layer.tri), dtype=np.int32)
         chi_mom = layer.moments
         u1, u2 = u1 + layer.z1, u2 + layer.z2
+        for i, extra in enumerate((layer.extra1, layer.extra2)):
+            if extra is None:
+                continue
+            # z broken at cross points: its rest enters membrane i's load moments
+            rows, add = extra
+            if moments[i].shape[0] == 1:
+                mass = (np.eye(3) + 1.0) / 12.0
+                full = consts[i] * mesh.areas[:, None, None] * mass
+            else:
+                full = np.array(moments[i], dtype=np.float64)
+            full[rows] += add
+            moments[i], consts[i] = full, 0.0
     coef = _kf.reconstruct_colored(
         order,
         color_ptr,
