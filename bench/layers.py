@@ -14,9 +14,10 @@ Three sections, written to ``bench/results/layers.json``:
   so err_ref misses its energy and eta / err_ref overstates the effectivity.
 * ``lshape``: the two-material L-shape (mu1 = 1 for x < 0, c for x > 0), the
   same columns.
-* ``cost``: seconds of the whole bound (``fastmem.bound.estimate``) with and
-  without the layer bound on the same triple, alternating, first call and
-  median of ``--repeat``.
+* ``cost``: seconds of the whole bound (``fastmem.bound.estimate``): the
+  standard bound alone, with the layer bound but without the cross-point cut,
+  and as shipped, on the same triple: first call on a fresh scene (with its
+  factorisations) and median of ``--repeat`` alternating calls.
 
 ``--only SECTION`` re-runs one section and keeps the others of the existing file.
 
@@ -38,17 +39,20 @@ LSHAPE = (1e-6, 1e-3)
 
 
 def _bounds(scene, r):
-    """(eta as returned, standard eta, layer used) of a solved triple."""
+    """(eta as returned, standard eta, eta without the cross-point cut, layer used)."""
     import fastmem.layers as fl
     from fastmem.bound import estimate
 
     est = estimate(scene, r.u1, r.u2, r.lam)
-    fl.LAYER_BOUND = False
     try:
+        fl.LAYER_BOUND = False
         plain = estimate(scene, r.u1, r.u2, r.lam)
+        fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = True, False
+        uncut = estimate(scene, r.u1, r.u2, r.lam)
     finally:
-        fl.LAYER_BOUND = True
-    return est.totals["eta"], plain.totals["eta"], bool(est.totals.get("layer_bound", 0.0))
+        fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = True, True
+    used = bool(est.totals.get("layer_bound", 0.0))
+    return est.totals["eta"], plain.totals["eta"], uncut.totals["eta"], used
 
 
 def _table(family, cases, sizes, ref_levels):
@@ -67,7 +71,7 @@ def _table(family, cases, sizes, ref_levels):
             mesh = chain[k]
             scene = fm.Scene(mesh, mu=(mu_of(mesh, c), 1.0), f=f, g=0.1)
             r = fm.solve(scene, method="exact", estimate=False)
-            eta, plain, used = _bounds(scene, r)
+            eta, plain, uncut, used = _bounds(scene, r)
             err = error_vs_reference(chain, k, r.u1, r.u2, ref_scene, ref)
             hi = float(np.hypot(err, ref.eta))
             rows.append(
@@ -81,6 +85,7 @@ def _table(family, cases, sizes, ref_levels):
                     "eta_ref": float(ref.eta),
                     "eta": eta,
                     "eta_standard": plain,
+                    "eta_without_cut": uncut,
                     "layer_bound_used": used,
                     "effectivity_vs_ref": eta / err,
                     "effectivity_bracket": [eta / hi, eta / err],
@@ -88,10 +93,15 @@ def _table(family, cases, sizes, ref_levels):
                 }
             )
             progress(
-                f"  {family} c={c:g} f={f} n={n}: eta/err_ref {eta / err:.3f} "
-                f"(standard {plain / err:.3f}), bracket [{eta / hi:.3f}, {eta / err:.3f}]"
+                f"  {family} c={c:g} f={f} n={n}: eta/err_ref {eta / err:.3f} (standard "
+                f"{plain / err:.3f}, no cut {uncut / err:.3f}), bracket [{eta / hi:.3f}, "
+                f"{eta / err:.3f}]"
             )
     return rows
+
+
+#: the bound's variants timed by the cost section: (LAYER_BOUND, CUT_CROSS_POINTS)
+VARIANTS = {"standard": (False, True), "layer_without_cut": (True, False), "layer": (True, True)}
 
 
 def run_cost(sizes, repeat):
@@ -100,40 +110,48 @@ def run_cost(sizes, repeat):
     from fastmem.bound import estimate
 
     rows = []
-    for c, f in ((1e-6, (-1.0, 1.0)), (1e-3, (-1.0, 1.0))):
+    for c, f in ((1e-6, (-1.0, 1.0)), (1e-3, (-1.0, 1.0)), (1e-3, (-4.0, 2.0))):
         for n in sizes:
             mesh = fm.Mesh.square(n)
             scene = fm.Scene(mesh, mu=(checkerboard(mesh, c), 1.0), f=f, g=0.1)
-            r = fm.solve(scene, method="exact-amg")
+            r = fm.solve(scene, method="exact-amg", estimate=False)
 
-            def run(layer, scene=scene, r=r):
-                fl.LAYER_BOUND = layer
+            def run(name, scene=scene, r=r):
+                fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = VARIANTS[name]
                 try:
                     t = time.perf_counter()
-                    estimate(scene, r.u1, r.u2, r.lam)
-                    return time.perf_counter() - t
+                    eta = estimate(scene, r.u1, r.u2, r.lam).eta
+                    return time.perf_counter() - t, eta
                 finally:
-                    fl.LAYER_BOUND = True
+                    fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = True, True
 
-            first = {"standard": run(False), "with_layer": run(True)}
-            times = {"standard": [], "with_layer": []}
+            # first calls, each on a fresh scene: every variant builds what it caches there
+            # (its factorisations); then alternating repetitions on one scene
+            first, eta = {}, {}
+            for name in VARIANTS:
+                fresh = fm.Scene(mesh, mu=(checkerboard(mesh, c), 1.0), f=f, g=0.1)
+                first[name], eta[name] = run(name, fresh)
+            times = {name: [] for name in VARIANTS}
             for _ in range(repeat):
-                times["standard"].append(run(False))
-                times["with_layer"].append(run(True))
+                for name in VARIANTS:
+                    times[name].append(run(name)[0])
             med = {k: statistics.median(v) for k, v in times.items()}
             rows.append(
                 {
                     "scene": f"checkerboard {c:g}, f = {f}",
                     "n": n,
                     "vertices": mesh.n_vertices,
+                    "eta": eta,
                     "first_seconds": first,
                     "median_seconds": med,
-                    "bound_with_layer_over_standard": med["with_layer"] / med["standard"],
+                    "bound_with_layer_over_standard": med["layer"] / med["standard"],
+                    "layer_without_cut_over_standard": med["layer_without_cut"] / med["standard"],
                 }
             )
             progress(
-                f"  cost c={c:g} n={n}: standard {med['standard']:.3f} s, with layer "
-                f"{med['with_layer']:.3f} s (first {first['with_layer']:.3f} s)"
+                f"  cost c={c:g} f={f} n={n}: standard {med['standard']:.3f} s, layer without "
+                f"cut {med['layer_without_cut']:.3f} s, layer {med['layer']:.3f} s "
+                f"(first {first['layer']:.3f} s); eta {eta}"
             )
     return rows
 

@@ -351,6 +351,30 @@ def _map(x, name, m) -> np.ndarray:
     return arr
 
 
+def split_form(a0, d, c):
+    r"""Return the second form of the layer bound (:mod:`fastmem.layers`).
+
+    :math:`\tfrac12[(a_0 + D) + ((a_0 + D)^2 + 4(a_0 D + c))^{1/2}]`, where
+
+    ``a0`` is the a of the fluxes measured against :math:`u_h` (no :math:`\eta_{nc}`,
+    no :math:`\eta_w`); ``d`` :math:`= D = |||\tilde u - u_h||| = (\sum_K
+    \eta_{nc,K}^2 + \eta_{w,K}^2)^{1/2}`; ``c`` as in the first form.  Proof:
+    test the equation of the error :math:`u - u_h` with :math:`v = u - \tilde u`
+    (the first form tests :math:`u - \tilde u` with itself).  The flux and residual terms give
+    :math:`\le a_0|||v|||` (fluxes against :math:`u_h`) and the contact part
+    :math:`\le c` as before, so with :math:`x = |||u - u_h|||` and
+    :math:`|||v||| \le x + D`:
+    :math:`x^2 = (\mu\nabla(u - u_h), \nabla v) + (\mu\nabla(u - u_h),
+    \nabla(\tilde u - u_h)) \le a_0(x + D) + c + xD`, a quadratic whose
+    positive root is this form.  It charges the squeeze about half of what the
+    first form does where c dominates (:math:`\approx \sqrt c + (a_0 + D)/2`
+    against :math:`\sqrt c + a/2 + D`); :func:`fastmem.estimators.combine`
+    returns the smaller of the two.
+    """
+    big = a0 + d
+    return 0.5 * (big + math.sqrt(big * big + 4.0 * (a0 * d + c)))
+
+
 def combine(eta_F1, eta_F2, local, glob) -> dict:
     r"""Combine all estimators into the guaranteed bound and its components.
 
@@ -473,6 +497,14 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     c = float(eta_c.sum())
     root = 0.5 * (a + math.sqrt(a * a + 4.0 * c))  # positive root of x^2 = a x + c
     eta = root + math.sqrt(nc_total**2 + w_sq)
+    split = None
+    if w1 is not None or w2 is not None:
+        # the layer bound: also its second form (split_form), the smaller is returned
+        p1, p2 = osc1 + f1, osc2 + f2
+        a0 = math.sqrt(float(p1 @ p1) + float(p2 @ p2)) + math.hypot(g1, g2)
+        split = split_form(a0, math.sqrt(nc_total**2 + w_sq), c)
+        split_won = split < eta
+        eta = min(eta, split)
 
     eta_alg = c_f * math.sqrt(glob["rho_norm1"] ** 2 / mu1 + glob["rho_norm2"] ** 2 / mu2)
     eta_lin = c_f * math.sqrt(1.0 / mu1 + 1.0 / mu2) * glob["lam_minus_norm"] + 2.0 * nc_total
@@ -492,6 +524,8 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
         "C_F": c_f,
         "eta_unguaranteed_slides": slides,
     }
+    if split is not None:
+        totals["split_form"] = float(split_won)
     maps = {
         "eta_F1": f1,
         "eta_F2": f2,

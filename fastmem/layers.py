@@ -86,8 +86,13 @@ with :math:`\eta_{w,K,i} = \mu_{i,K}^{1/2}\|\nabla w_i\|_K` added to membrane
 i's term of a.  All integrals of w are exact (polynomials on the seven pieces
 of K where :math:`\varphi_t` is linear, degree-4 rule).  The band parameter t
 is chosen per triangle (any choice keeps the bound; it only trades c against
-:math:`\eta_w`).  :func:`fastmem.bound.evaluate` returns the smaller of this
-bound and the standard one.
+:math:`\eta_w`).  A second form of the same bound,
+:func:`fastmem.estimators.split_form`, tests the error equation of
+:math:`u - u_h` with :math:`u - \tilde u` and charges the squeeze about half
+as much where c dominates; :func:`fastmem.estimators.combine` takes the
+smaller, and the choice of t minimises the smaller.
+:func:`fastmem.bound.evaluate` returns the smaller of this bound and the
+standard one.
 """
 
 from __future__ import annotations
@@ -97,7 +102,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .estimators import _lambda_parts
+from .estimators import _lambda_parts, split_form
 from .quadrature import triangle_rule
 
 __all__ = [
@@ -642,9 +647,14 @@ def _cross_points(scene, u1, u2, lam, r1, r2, sel, chi_s, mom, closed, cuts):
         first = np.zeros(cutinfo["n"] - n, dtype=np.int64)
         first[cutinfo["sector"]] = owner  # the vertex of each sector
         eps = eps_d[:n] + np.bincount(first, weights=eps_d[n:], minlength=n)
-        zs.append(np.zeros(n))
+        # continuous part: z at the uncut vertices, the sectors' mean at the cut ones
+        cnt = np.bincount(first, minlength=n)
+        zc = full[:n].copy()
+        cut = cnt > 0
+        zc[cut] = np.bincount(first, weights=full[n:], minlength=n)[cut] / cnt[cut]
+        zs.append(zc)
         epss.append(eps)
-        extra.append(_broken_moments(scene, i, cutinfo, full))
+        extra.append(_broken_moments(scene, i, cutinfo, full, zc))
     return alpha, scale, tuple(zs), tuple(epss), tuple(extra)
 
 
@@ -676,15 +686,25 @@ def _sector_data(scene, i, u, lam, r, cutinfo, row_of, mom):
     return load + sign * contact - dot - rho
 
 
-def _broken_moments(scene, i, cutinfo, z):
-    """Load moments ``-(mu_i grad z . grad psi_a, lambda_j)_K`` of the broken z (all K)."""
+def _broken_moments(scene, i, cutinfo, z, zc):
+    """Load moments of the broken rest ``e = z - zc`` on the cross points' patches.
+
+    e is ``z_sector - zc_a`` at the corners of the cut vertices, 0 elsewhere, so it
+    lives on the triangles of their patches: ``(rows, add)`` with ``add[r, a, j] =
+    -(mu_i grad e . grad psi_a, lambda_j)_K`` (the same for every j).
+    """
     mesh = scene.mesh
-    grad = mesh.gradients
-    gz = np.einsum("tjk,tj->tk", grad, z[cutinfo["dof"]])
-    mu = _per_triangle(scene.mu1 if i == 1 else scene.mu2, mesh.n_triangles)
-    per = -np.einsum("tjk,tk->tj", grad, gz) * (mu * mesh.areas / 3.0)[:, None]
-    add = np.repeat(per[:, :, None], 3, axis=2)
-    return np.arange(mesh.n_triangles), add
+    n = mesh.n_vertices
+    tri = cutinfo["tri"]
+    e = z[n + cutinfo["sector"]] - zc[cutinfo["owner"]]
+    rows, inv = np.unique(tri, return_inverse=True)
+    ge = np.zeros((rows.size, 2))
+    np.add.at(ge, inv, e[:, None] * mesh.gradients[tri, cutinfo["loc"]])
+    mu = _per_triangle(scene.mu1 if i == 1 else scene.mu2, mesh.n_triangles)[rows]
+    per = (
+        -np.einsum("tjk,tk->tj", mesh.gradients[rows], ge) * (mu * mesh.areas[rows] / 3.0)[:, None]
+    )
+    return rows, np.ascontiguousarray(np.repeat(per[:, :, None], 3, axis=2))
 
 
 def _components(scene, sel, closed, chimom):
@@ -826,17 +846,37 @@ def layer_terms(scene, layer: LayerLoad, u1, u2, lam, eta_f1, eta_f2, local, glo
     c_rest = float(eta_c.sum())
     d1 = base1.copy()
     d2 = base2.copy()
+    # the split form's a: fluxes against u_h, without eta_nc and eta_w (split_form)
+    plain2 = np.asarray(local["eta_osc2"]) + eta_f2
+    a0 = math.sqrt(float(base1 @ base1) + float(plain2 @ plain2)) + glob_sum
+    idx = np.arange(q.size)
 
     def bound(k):
-        wk = w_all[np.arange(q.size), k]
+        """(eta, linearisation data) of both forms for the choice k."""
+        wk = w_all[idx, k]
         d1[q] = np.where(on1, base1[q] + wk, base1[q])
         d2[q] = np.where(on1, base2[q], base2[q] + wk)
         big = math.sqrt(float(d1 @ d1) + float(d2 @ d2))
         a = big + glob_sum
-        c = c_rest + float(c_all[np.arange(q.size), k].sum())
+        c = c_rest + float(c_all[idx, k].sum())
         s = math.sqrt(a * a + 4.0 * c)
         p = math.sqrt(nc2 + float(wk @ wk))
-        return 0.5 * (a + s) + p, (big, a, s, p)
+        joint = 0.5 * (a + s) + p
+        split = split_form(a0, p, c)
+        return min(joint, split), (big, a, s, p, c, joint, split)
+
+    def costs(info):
+        """Per-triangle cost of each t: the linearised eta of the form that is smaller."""
+        big, a, s, p, c, joint, split = info
+        if joint <= split:
+            alpha = 0.5 * (1.0 + a / s) / (2.0 * big)  # d eta / d (d_K^2)
+            beta = 1.0 / s  # d eta / d c
+            gamma = 1.0 / (2.0 * p) if p > 0.0 else 0.0  # d eta / d (w_K^2)
+            return alpha * (base_q[:, None] + w_all) ** 2 + gamma * w_all**2 + beta * c_all
+        big_a = a0 + p
+        root = math.sqrt(big_a * big_a + 4.0 * (a0 * p + c))
+        gamma = 0.5 * (1.0 + (big_a + 2.0 * a0) / root) / (2.0 * p) if p > 0.0 else 0.0
+        return gamma * w_all**2 + c_all / root
 
     # start from the best uniform t, then per-triangle sweeps
     best_k = None
@@ -848,12 +888,8 @@ def layer_terms(scene, layer: LayerLoad, u1, u2, lam, eta_f1, eta_f2, local, glo
             best, best_k = val, k
     k = best_k
     for _ in range(4):
-        _, (big, a, s, p) = bound(k)
-        alpha = 0.5 * (1.0 + a / s) / (2.0 * big)  # d eta / d (d_K^2)
-        beta = 1.0 / s  # d eta / d c
-        gamma = 1.0 / (2.0 * p) if p > 0.0 else 0.0  # d eta / d (w_K^2)
-        cost = alpha * (base_q[:, None] + w_all) ** 2 + gamma * w_all**2 + beta * c_all
-        k_new = cost.argmin(axis=1)
+        _, info = bound(k)
+        k_new = costs(info).argmin(axis=1)
         val, _ = bound(k_new)
         if not val < best:
             break

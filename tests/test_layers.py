@@ -183,6 +183,29 @@ def test_cut_solves_by_amg_match_the_direct_ones(monkeypatch):
     assert abs(amg.totals["eta"] - direct.totals["eta"]) <= 1e-6 * direct.totals["eta"]
 
 
+def test_split_form_is_the_root_of_its_quadratic():
+    """x = split_form(a0, D, c) solves x^2 = a0 (x + D) + c + x D, x >= 0; D = 0: the first form."""
+    from fastmem.estimators import split_form
+
+    rng = np.random.default_rng(5)
+    for a0, d, c in rng.uniform(0.0, 2.0, (20, 3)) ** 3:
+        x = split_form(a0, d, c)
+        assert x >= 0.0
+        assert abs(x * x - (a0 * (x + d) + c + x * d)) <= 1e-12 * max(1.0, x * x)
+        assert split_form(a0, 0.0, c) == pytest.approx(0.5 * (a0 + np.sqrt(a0 * a0 + 4 * c)))
+
+
+def test_split_form_wins_and_stays_above_the_error():
+    """Checkerboard 1e-6, n = 64 (squeezed triangles): the second form is the smaller, and
+    eta >= the error against a solution two refinements finer."""
+    scene, res, err = _error_against_reference(64, 1e-6, (-1.0, 1.0), levels=2)
+    est = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert est.totals["layer_bound"] == 1.0
+    assert est.totals["split_form"] == 1.0
+    assert est.maps["eta_w1"].max() > 0.0
+    assert est.eta >= err
+
+
 def test_constant_tensions_never_take_the_layer_path():
     scene = fm.Scene(fm.Mesh.square(8), mu=(1e-6, 1.0), f=(-1.0, 1.0), g=0.1)
     res = fm.solve(scene, method="exact", estimate=True)
