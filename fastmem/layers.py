@@ -414,11 +414,10 @@ def _cut(scene, i):
 
     Only isolated cross points (no neighbour is one) are cut.  Returns None
     (constant tension, no such point, or more than :data:`CUT_MAX_VERTICES`),
-    else a dict: ``dof`` (M, 3) the unknown of each
-    triangle corner (the vertex, or at a cross point ``N + s`` for its sector s),
-    ``n`` the number of unknowns, ``pos`` the patch entries of the cross points,
-    ``owner``/``tri``/``loc`` their vertex, triangle and local index, ``sector``
-    their sector.
+    else a dict: ``n`` the number of unknowns (N + the sectors), ``cut`` the
+    cut vertices, and for the patch entries of the cut vertices
+    ``owner``/``tri``/``loc`` (vertex, triangle, local index) and ``sector``: that
+    corner's unknown is ``N + sector`` (the vertex itself elsewhere; :func:`_unknowns`).
     """
     key = ("layer_cut", i)
     cache = scene._cache
@@ -485,10 +484,7 @@ def _sectors(mesh, mu, cut):
     k = len(pos)
     graph = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(k, k))
     n_sec, sector = connected_components(graph, directed=False)
-    dof = mesh.triangles.astype(np.int64)
-    dof[tri, loc] = n + sector
     return {
-        "dof": dof,
         "n": n + n_sec,
         "cut": cut,
         "owner": owner,
@@ -496,6 +492,18 @@ def _sectors(mesh, mu, cut):
         "loc": loc,
         "sector": sector,
     }
+
+
+def _unknowns(mesh, cutinfo, rows):
+    """Return the unknowns of the corners of the triangles ``rows`` (sorted, unique): (R, 3)."""
+    out = mesh.triangles[rows].astype(np.int64)
+    if len(rows) == 0:
+        return out
+    tri = cutinfo["tri"]
+    pos = np.minimum(np.searchsorted(rows, tri), len(rows) - 1)
+    hit = rows[pos] == tri
+    out[pos[hit], cutinfo["loc"][hit]] = mesh.n_vertices + cutinfo["sector"][hit]
+    return out
 
 
 def _cut_solver(scene, i, cutinfo):
@@ -517,7 +525,7 @@ def _cut_solver(scene, i, cutinfo):
     grad = mesh.gradients[tri]
     loc = np.einsum("tik,tjk->tij", grad, grad) * (mu * mesh.areas[tri])[:, None, None]
     old = mesh.triangles[tri].astype(np.int64)
-    new = cutinfo["dof"][tri]
+    new = _unknowns(mesh, cutinfo, tri)
     r = np.concatenate([np.repeat(old, 3, axis=1).ravel(), np.repeat(new, 3, axis=1).ravel()])
     c = np.concatenate([np.tile(old, (1, 3)).ravel(), np.tile(new, (1, 3)).ravel()])
     v = np.concatenate([-loc.ravel(), loc.ravel()])
@@ -580,15 +588,11 @@ def _cross_points(scene, u1, u2, lam, r1, r2, sel, chi_s, mom, closed, cuts):
         )
         spaces.append((cutinfo, solve, matrix, free, b))
     # closed components (equal tensions, edge-connected) holding a high sector's triangle
-    comp_rows = _components(scene, sel, closed, chimom)
-    kc = len(comp_rows)
-    comp = np.full(len(sel), -1, dtype=np.int64)
-    for k, rows in enumerate(comp_rows):
-        comp[rows] = k
+    comp, kc = _components(scene, sel, closed, chimom)
     on = np.flatnonzero(comp >= 0)
     cmat = []  # per membrane: sparse (kc, n_unknowns), the load of chi on each component
     for cutinfo, _, _, _, b in spaces:
-        idx = (t if cutinfo is None else cutinfo["dof"])[sel[on]]
+        idx = t[sel[on]] if cutinfo is None else _unknowns(mesh, cutinfo, sel[on])
         ck = coo_matrix(
             (chimom[on].ravel(), (np.repeat(comp[on], 3), idx.ravel())), shape=(kc, b.size)
         ).tocsr()
@@ -708,13 +712,13 @@ def _broken_moments(scene, i, cutinfo, z, zc):
 
 
 def _components(scene, sel, closed, chimom):
-    """Rows of ``sel`` per closed component whose pressure is rescaled.
+    """Return the component of every row of ``sel`` (-1: none) and their number K.
 
     Components: closed triangles (rows of sel) connected through edges whose two
     triangles have equal tensions; the :data:`ALPHA_MAX_COMPONENTS` largest by
     their chi load.  (Restricting them to those that hold a high sector of a
-    cross point lost 0.357 -> 0.326 on the checkerboard 1e-6, f = (-4, 2),
-    n = 32: components whose cross points are open still gain.)
+    cross point gave eta 0.359 instead of 0.329 on the checkerboard 1e-6,
+    f = (-4, 2), n = 32: components whose cross points are open gain too.)
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -723,7 +727,7 @@ def _components(scene, sel, closed, chimom):
     m = mesh.n_triangles
     rows_c = np.flatnonzero(closed[sel])
     if rows_c.size == 0:
-        return []
+        return np.full(len(sel), -1, dtype=np.int64), 0
     is_c = np.zeros(m, dtype=bool)
     is_c[sel[rows_c]] = True
     mu1 = _per_triangle(scene.mu1, m)
@@ -740,7 +744,12 @@ def _components(scene, sel, closed, chimom):
     load = np.bincount(inv, weights=mass)
     cap = max(1, min(ALPHA_MAX_COMPONENTS, ALPHA_MEMORY // (16 * mesh.n_vertices)))
     best = np.argsort(-load)[:cap]
-    return [rows_c[inv == k] for k in best if load[k] > 0.0]
+    best = best[load[best] > 0.0]
+    rank = np.full(uniq.size, -1, dtype=np.int64)
+    rank[best] = np.arange(best.size)
+    comp = np.full(len(sel), -1, dtype=np.int64)
+    comp[rows_c] = rank[inv]
+    return comp, best.size
 
 
 # --- the squeeze integrals -------------------------------------------------------------
