@@ -280,7 +280,7 @@ def layer_load(scene, u1, u2, lam, r1=None, r2=None) -> LayerLoad | None:
             from .linear import residuals
 
             r1, r2 = residuals(scene, u1, u2, lam)
-        cp = _cross_points(scene, u1, u2, lam, r1, r2, sel, chi_s, mom, closed, cuts)
+        cp = _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, closed, cuts)
         alpha, scale, zs, epss, extra = cp
         if alpha is not None and np.any(alpha != 0.0):
             # the closed components' pressure (1 + alpha_k) chi: moments, nodal values
@@ -546,7 +546,7 @@ def _cut_solver(scene, i, cutinfo):
     return out
 
 
-def _cross_points(scene, u1, u2, lam, r1, r2, sel, chi_s, mom, closed, cuts):
+def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, closed, cuts):
     r"""Solve for z broken at cross points and the closed components' pressure scales.
 
     Returns ``(alpha, scale, (z1, z2), (eps1, eps2), (extra1, extra2))``: scale
