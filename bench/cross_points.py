@@ -37,9 +37,9 @@ import numpy as np
 
 from bench._common import finish, keep_sections, parse, progress, section_rows, sectioned_parser
 from bench.effectivity import (
+    chain_solutions,
     checkerboard,
     energy,
-    error_vs_reference,
     prolong,
     reference_chain,
     two_materials,
@@ -113,14 +113,9 @@ def run_checkerboard(sizes, levels):
     for c, f in CHECKER:
         chain, ref_scene, ref = reference_chain(fm.Mesh.square, checkerboard, c, f, sizes, levels)
         fine = chain[-1]
-        for n in sizes:
-            k = int(round(np.log2(n / sizes[0])))
-            mesh = chain[k]
-            scene = fm.Scene(mesh, mu=(checkerboard(mesh, c), 1.0), f=f, g=0.1)
-            r = fm.solve(scene, method="exact", estimate=True)
-            err = error_vs_reference(chain, k, r.u1, r.u2, ref_scene, ref)
+        sols = chain_solutions(chain, ref_scene, ref, sizes, checkerboard, c, f, estimate=True)
+        for n, scene, r, err, hi in sols:
             rings = _eta(scene, r, False)
-            hi = float(np.hypot(err, ref.eta))
             rows.append(
                 {
                     "c": c,

@@ -117,6 +117,24 @@ def error_vs_reference(chain, k, u1, u2, ref_scene, ref):
     return energy(chain[-1], (ref_scene.mu1, 1.0), ref.u1 - u1, ref.u2 - u2)
 
 
+def chain_solutions(chain, ref_scene, ref, sizes, mu_of, c, f, estimate=False):
+    """Yield ``(n, scene, r, err_ref, hi)`` on the meshes of ``chain`` at ``sizes``.
+
+    r: the exact solve of the scene (mu1 = mu_of(mesh, c), mu2 = 1, g = 0.1);
+    err_ref: its energy error against ``ref``; hi: ``(err_ref^2 + eta_ref^2)^(1/2)``,
+    the upper end of the true error that the reference allows.
+    """
+    import fastmem as fm
+
+    for n in sizes:
+        k = int(round(np.log2(n / sizes[0])))
+        mesh = chain[k]
+        scene = fm.Scene(mesh, mu=(mu_of(mesh, c), 1.0), f=f, g=0.1)
+        r = fm.solve(scene, method="exact", estimate=estimate)
+        err = error_vs_reference(chain, k, r.u1, r.u2, ref_scene, ref)
+        yield n, scene, r, err, float(np.hypot(err, ref.eta))
+
+
 def eta_projected(scene, r):
     """The bound of result r with the projected redistribution (before the glued load).
 

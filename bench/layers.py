@@ -29,10 +29,8 @@ from __future__ import annotations
 import statistics
 import time
 
-import numpy as np
-
 from bench._common import finish, keep_sections, parse, progress, section_rows, sectioned_parser
-from bench.effectivity import checkerboard, error_vs_reference, reference_chain, two_materials
+from bench.effectivity import chain_solutions, checkerboard, reference_chain, two_materials
 
 CHECKER = tuple((c, f) for c in (1e-6, 1e-3, 1e3, 1e6) for f in ((-1.0, 1.0), (-4.0, 2.0)))
 LSHAPE = (1e-6, 1e-3)
@@ -66,14 +64,8 @@ def _table(family, cases, sizes, ref_levels):
         # error times 1e3 (eta_alg), which would make the bracket useless
         chain, ref_scene, ref = reference_chain(make, mu_of, c, f, sizes, ref_levels, "exact")
         fine = chain[-1]
-        for n in sizes:
-            k = int(round(np.log2(n / sizes[0])))
-            mesh = chain[k]
-            scene = fm.Scene(mesh, mu=(mu_of(mesh, c), 1.0), f=f, g=0.1)
-            r = fm.solve(scene, method="exact", estimate=False)
+        for n, scene, r, err, hi in chain_solutions(chain, ref_scene, ref, sizes, mu_of, c, f):
             eta, plain, uncut, used = _bounds(scene, r)
-            err = error_vs_reference(chain, k, r.u1, r.u2, ref_scene, ref)
-            hi = float(np.hypot(err, ref.eta))
             rows.append(
                 {
                     "family": family,

@@ -266,7 +266,7 @@ def layer_load(scene, u1, u2, lam, r1=None, r2=None) -> LayerLoad | None:
         # form) the pressure is the glued one pointwise, not its P1 projection, so that
         # f1 + chi = mu1 (f1 + f2) / (mu1 + mu2) is what the soft membrane's oscillation
         # (weight mu_soft^-1/2) measures; moments and oscillation at the load rule's points
-        mom[closed_rows], osc1, osc2 = _pointwise_closed(
+        mom[closed_rows], osc1, osc2, points = _pointwise_closed(
             scene, sel[closed_rows], mu1, mu2, lam_k[closed_rows]
         )
     delta = np.bincount(t[sel].ravel(), weights=mom.sum(axis=2).ravel(), minlength=mesh.n_vertices)
@@ -283,17 +283,18 @@ def layer_load(scene, u1, u2, lam, r1=None, r2=None) -> LayerLoad | None:
             from .linear import residuals
 
             r1, r2 = residuals(scene, u1, u2, lam)
-        cp = _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, closed, cuts)
+        cp = _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, delta, closed, cuts)
         alpha, scale, zs, epss, extra = cp
         if alpha is not None and np.any(alpha != 0.0):
-            # the closed components' pressure (1 + alpha_k) chi: moments, nodal values
-            # and (callable loads) the pointwise pressure's oscillation
+            # the closed components' pressure (1 + alpha_k) chi: moments (the chi part of
+            # the moments scaled, pointwise ones included), nodal values and (callable
+            # loads) the pointwise pressure's oscillation
             part = mom + lam_k[:, :, None] * ((np.eye(3) + 1.0) / 12.0) * area[:, None, None]
             mom += (scale - 1.0)[:, None, None] * part
             chi_s = chi_s * scale[:, None]
             if osc1 is not None:
-                mom[closed_rows], osc1, osc2 = _pointwise_closed(
-                    scene, sel[closed_rows], mu1, mu2, lam_k[closed_rows], scale[closed_rows]
+                osc1, osc2 = _closed_oscillation(
+                    scene, sel[closed_rows], mu1, mu2, points, scale[closed_rows]
                 )
         (z1, z2), (eps1, eps2) = zs, epss
     squeeze_rows = np.flatnonzero(layer[sel])
@@ -318,14 +319,15 @@ def layer_load(scene, u1, u2, lam, r1=None, r2=None) -> LayerLoad | None:
     )
 
 
-def _pointwise_closed(scene, tri, mu1, mu2, lam_k, scale=None):
+def _pointwise_closed(scene, tri, mu1, mu2, lam_k):
     """Moments ``((chi - lam_a) psi_a, psi_j)_K`` and oscillations of ``f1 + chi``, ``f2 - chi``.
 
     With the pointwise glued pressure ``chi = (mu1 f2 - mu2 f1)^+ / (mu1 + mu2)`` at the
-    points of the load rule (degree ``scene.load_degree``) of the triangles ``tri``,
-    times ``scale`` per triangle when given (the closed components' pressure scales).
+    points of the load rule (degree ``scene.load_degree``) of the triangles ``tri``.
+    Returns ``(mom, osc1, osc2, points)``; ``points`` (the loads and chi there) lets
+    :func:`_closed_oscillation` rescale the pressure without evaluating the loads again.
     """
-    from .flux import _load_values, _oscillation_at_points
+    from .flux import _load_values
     from .quadrature import quadrature_points
 
     mesh = scene.mesh
@@ -335,16 +337,29 @@ def _pointwise_closed(scene, tri, mu1, mu2, lam_k, scale=None):
     f2 = _load_values(scene, 2, tri, x, y, bary)
     m1, m2 = mu1[tri, None], mu2[tri, None]
     chi = np.maximum(m1 * f2 - m2 * f1, 0.0) / (m1 + m2)
-    if scale is not None:
-        chi *= scale[:, None]
     area = mesh.areas[tri]
     # (chi psi_i, psi_j)_K = |K| sum_q w_q chi_q b_qi b_qj
     mom = np.einsum("sq,qi,qj->sij", chi * w, bary, bary) * area[:, None, None]
     mom -= lam_k[:, :, None] * ((np.eye(3) + 1.0) / 12.0) * area[:, None, None]
+    points = (f1, f2, chi)
+    osc1, osc2 = _closed_oscillation(scene, tri, mu1, mu2, points)
+    return mom, osc1, osc2, points
+
+
+def _closed_oscillation(scene, tri, mu1, mu2, points, scale=None):
+    """Oscillations of ``f1 + s chi`` and ``f2 - s chi`` on ``tri`` (s: ``scale`` or 1)."""
+    from .flux import _oscillation_at_points
+
+    mesh = scene.mesh
+    f1, f2, chi = points
+    if scale is not None:
+        chi = chi * scale[:, None]
+    bary, w = triangle_rule(scene.load_degree)
+    area = mesh.areas[tri]
     h = mesh.diameters[tri] / np.pi
     osc1 = h / np.sqrt(mu1[tri]) * _oscillation_at_points(f1 + chi, bary, w, area)
     osc2 = h / np.sqrt(mu2[tri]) * _oscillation_at_points(f2 - chi, bary, w, area)
-    return mom, osc1, osc2
+    return osc1, osc2
 
 
 def _solve(scene, i, rhs):
@@ -549,7 +564,7 @@ def _cut_solver(scene, i, cutinfo):
     return out
 
 
-def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, closed, cuts):
+def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, delta, closed, cuts):
     r"""Solve for z broken at cross points and the closed components' pressure scales.
 
     Returns ``(alpha, scale, (z1, z2), (eps1, eps2), (extra1, extra2))``: scale
@@ -567,8 +582,6 @@ def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, closed, cuts):
     lam_k = lam[t[sel]]
     # the chi part of the layer moments per (row, vertex): int_K chi psi_a
     chimom = mom.sum(axis=2) + lam_k * area[sel, None] / 3.0
-    delta = np.bincount(t[sel].ravel(), weights=mom.sum(axis=2).ravel(), minlength=n)
-    delta[bnd] = 0.0
     row_of = np.full(mesh.n_triangles, -1, dtype=np.int64)
     row_of[sel] = np.arange(len(sel))
     spaces = []
