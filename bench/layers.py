@@ -6,7 +6,8 @@ Three sections, written to ``bench/results/layers.json``:
   of bench/effectivity.py), exact solves, n = 16 ... 64 against a solution
   ``--ref-levels`` refinements finer.  For each triple: the bound as returned
   (the smaller of the layer bound and the standard one), the standard bound
-  alone (``fastmem.layers.LAYER_BOUND = False``), the reference error and the
+  alone (``fastmem.layers.LAYER_BOUND = False``), the layer bound without the
+  cross-point cut and without the connected squeeze, the reference error and the
   bracket of the true effectivity that the reference allows,
   [eta / (err_ref^2 + eta_ref^2)^(1/2), eta / err_ref] (eta_ref: the
   reference's own bound; Galerkin orthogonality, approximate with contact).
@@ -16,7 +17,8 @@ Three sections, written to ``bench/results/layers.json``:
   same columns.
 * ``cost``: seconds of the whole bound (``fastmem.bound.estimate``): the
   standard bound alone, with the layer bound but without the cross-point cut,
-  and as shipped, on the same triple: first call on a fresh scene (with its
+  without the connected squeeze (``CONNECTED_BAND = False``) and as shipped, on
+  the same triple: first call on a fresh scene (with its
   factorisations) and median of ``--repeat`` alternating calls.
 
 ``--only SECTION`` re-runs one section and keeps the others of the existing file.
@@ -26,18 +28,26 @@ Three sections, written to ``bench/results/layers.json``:
 
 from __future__ import annotations
 
+import math
 import statistics
 import time
 
 from bench._common import finish, keep_sections, parse, progress, section_rows, sectioned_parser
-from bench.effectivity import chain_solutions, checkerboard, reference_chain, two_materials
+from bench.effectivity import (
+    chain_solutions,
+    checkerboard,
+    error_vs_reference,
+    reference_chain,
+    two_materials,
+)
 
 CHECKER = tuple((c, f) for c in (1e-6, 1e-3, 1e3, 1e6) for f in ((-1.0, 1.0), (-4.0, 2.0)))
 LSHAPE = (1e-6, 1e-3)
 
 
 def _bounds(scene, r):
-    """(eta as returned, standard eta, eta without the cross-point cut, layer used)."""
+    """(eta as returned, standard eta, eta without the cross-point cut, eta without the
+    connected squeeze, layer used)."""
     import fastmem.layers as fl
     from fastmem.bound import estimate
 
@@ -47,10 +57,13 @@ def _bounds(scene, r):
         plain = estimate(scene, r.u1, r.u2, r.lam)
         fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = True, False
         uncut = estimate(scene, r.u1, r.u2, r.lam)
+        fl.CUT_CROSS_POINTS, fl.CONNECTED_BAND = True, False
+        per_triangle = estimate(scene, r.u1, r.u2, r.lam)
     finally:
-        fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = True, True
+        fl.LAYER_BOUND, fl.CUT_CROSS_POINTS, fl.CONNECTED_BAND = True, True, True
     used = bool(est.totals.get("layer_bound", 0.0))
-    return est.totals["eta"], plain.totals["eta"], uncut.totals["eta"], used
+    etas = (est, plain, uncut, per_triangle)
+    return (*(e.totals["eta"] for e in etas), used)
 
 
 def _table(family, cases, sizes, ref_levels):
@@ -65,7 +78,11 @@ def _table(family, cases, sizes, ref_levels):
         chain, ref_scene, ref = reference_chain(make, mu_of, c, f, sizes, ref_levels, "exact")
         fine = chain[-1]
         for n, scene, r, err, hi in chain_solutions(chain, ref_scene, ref, sizes, mu_of, c, f):
-            eta, plain, uncut, used = _bounds(scene, r)
+            eta, plain, uncut, per_triangle, used = _bounds(scene, r)
+            # the default (inexact) solve of the same scene against the same reference
+            ri = fm.solve(scene, estimate=True)
+            level = round(math.log2(n / sizes[0]))  # chain[level] is the mesh of size n
+            err_i = error_vs_reference(chain, level, ri.u1, ri.u2, ref_scene, ref)
             rows.append(
                 {
                     "family": family,
@@ -78,22 +95,33 @@ def _table(family, cases, sizes, ref_levels):
                     "eta": eta,
                     "eta_standard": plain,
                     "eta_without_cut": uncut,
+                    "eta_without_connected_squeeze": per_triangle,
                     "layer_bound_used": used,
                     "effectivity_vs_ref": eta / err,
+                    "inexact_eta": float(ri.eta),
+                    "inexact_err_ref": err_i,
+                    "inexact_effectivity_vs_ref": float(ri.eta) / err_i,
                     "effectivity_bracket": [eta / hi, eta / err],
                     "standard_effectivity_vs_ref": plain / err,
                 }
             )
             progress(
                 f"  {family} c={c:g} f={f} n={n}: eta/err_ref {eta / err:.3f} (standard "
-                f"{plain / err:.3f}, no cut {uncut / err:.3f}), bracket [{eta / hi:.3f}, "
-                f"{eta / err:.3f}]"
+                f"{plain / err:.3f}, no cut {uncut / err:.3f}, per-triangle squeeze "
+                f"{per_triangle / err:.3f}; inexact {ri.eta / err_i:.3f}), bracket "
+                f"[{eta / hi:.3f}, {eta / err:.3f}]"
             )
     return rows
 
 
-#: the bound's variants timed by the cost section: (LAYER_BOUND, CUT_CROSS_POINTS)
-VARIANTS = {"standard": (False, True), "layer_without_cut": (True, False), "layer": (True, True)}
+#: the bound's variants timed by the cost section: (LAYER_BOUND, CUT_CROSS_POINTS,
+#: CONNECTED_BAND)
+VARIANTS = {
+    "standard": (False, True, True),
+    "layer_without_cut": (True, False, True),
+    "layer_without_connected_squeeze": (True, True, False),
+    "layer": (True, True, True),
+}
 
 
 def run_cost(sizes, repeat):
@@ -109,13 +137,13 @@ def run_cost(sizes, repeat):
             r = fm.solve(scene, method="exact-amg", estimate=False)
 
             def run(name, scene=scene, r=r):
-                fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = VARIANTS[name]
+                fl.LAYER_BOUND, fl.CUT_CROSS_POINTS, fl.CONNECTED_BAND = VARIANTS[name]
                 try:
                     t = time.perf_counter()
                     eta = estimate(scene, r.u1, r.u2, r.lam).eta
                     return time.perf_counter() - t, eta
                 finally:
-                    fl.LAYER_BOUND, fl.CUT_CROSS_POINTS = True, True
+                    fl.LAYER_BOUND, fl.CUT_CROSS_POINTS, fl.CONNECTED_BAND = True, True, True
 
             # first calls, each on a fresh scene: every variant builds what it caches there
             # (its factorisations); then alternating repetitions on one scene
@@ -138,11 +166,14 @@ def run_cost(sizes, repeat):
                     "median_seconds": med,
                     "bound_with_layer_over_standard": med["layer"] / med["standard"],
                     "layer_without_cut_over_standard": med["layer_without_cut"] / med["standard"],
+                    "layer_over_layer_without_connected_squeeze": med["layer"]
+                    / med["layer_without_connected_squeeze"],
                 }
             )
             progress(
                 f"  cost c={c:g} f={f} n={n}: standard {med['standard']:.3f} s, layer without "
-                f"cut {med['layer_without_cut']:.3f} s, layer {med['layer']:.3f} s "
+                f"cut {med['layer_without_cut']:.3f} s, without the connected squeeze "
+                f"{med['layer_without_connected_squeeze']:.3f} s, layer {med['layer']:.3f} s "
                 f"(first {first['layer']:.3f} s); eta {eta}"
             )
     return rows
