@@ -141,8 +141,16 @@ SQUEEZE_T = (0.0, 1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3)
 CONNECTED_BAND = True
 #: band parameters of the connected squeeze, one per connected set
 BAND_T = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 0.5, 1.0)
-#: vertices of the direct z solves (above: AMG-preconditioned CG)
-LAYER_DIRECT_VERTICES = 300_000
+#: vertices of the direct z solves (above: AMG-preconditioned CG) ...
+LAYER_DIRECT_VERTICES = 1_100_000
+#: ... as long as two factors (one per membrane) fit in this fraction of the memory the
+#: process can still use (a factor's peak estimated at LAYER_FACTOR_BYTES per vertex times
+#: log2(n) / 20, nested dissection on a 2-d mesh; measured peaks 2.3, 2.4 and 2.5 KB per
+#: vertex at 66k, 263k and 1.05M vertices, 1.8, 2.0 and 2.4 KB kept).
+#: Checkerboard 1e-3, f = (-4, 2), n = 1024 (1.05M vertices, two factors): the layer bound
+#: in 11.9 s warm, 30.8 s first call, 8.0 GB peak; by AMG-CG 67.7 s, 70.4 s, 3.6 GB
+LAYER_DIRECT_MEMORY_FRACTION = 0.35
+LAYER_FACTOR_BYTES = 2600
 #: relative residual of the z solves by CG (the rest is carried by rho, so the bound holds)
 LAYER_CG_TOL = 1e-10
 _CHUNK = 20_000
@@ -409,13 +417,33 @@ def _solver(scene, i):
     return cache[key]
 
 
+def _direct_fits(n_vertices):
+    """Return whether two factors of ``n_vertices`` unknowns fit in memory.
+
+    They may take :data:`LAYER_DIRECT_MEMORY_FRACTION` of the memory limit
+    (:func:`fastmem.options.memory_limit`) and of what the process can still reach
+    (resident memory plus ``MemAvailable``, Linux).
+    """
+    from .adaptive import _meminfo_bytes, _rss_bytes
+    from .options import memory_limit
+
+    need = 2 * LAYER_FACTOR_BYTES * n_vertices * max(1.0, math.log2(max(n_vertices, 2)) / 20.0)
+    room = [memory_limit()[0]]
+    avail = _meminfo_bytes("MemAvailable")
+    if avail is not None:
+        room.append(avail + _rss_bytes())
+    room = [r for r in room if r]
+    return not room or need <= LAYER_DIRECT_MEMORY_FRACTION * min(room)
+
+
 def _factor(a, n_vertices, coordinates):
     """Return a solver of the SPD matrix a (vector or (n, k) right-hand sides).
 
     Nested-dissection LU (:func:`fastmem.direct.factorize`, a point per unknown in
-    ``coordinates``) up to :data:`LAYER_DIRECT_VERTICES`, else AMG-preconditioned CG.
+    ``coordinates``) up to :data:`LAYER_DIRECT_VERTICES` when it fits in memory
+    (:func:`_direct_fits`), else AMG-preconditioned CG.
     """
-    if n_vertices <= LAYER_DIRECT_VERTICES:
+    if n_vertices <= LAYER_DIRECT_VERTICES and _direct_fits(n_vertices):
         from .direct import factorize
 
         lu = factorize(a, coordinates)

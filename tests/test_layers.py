@@ -440,3 +440,16 @@ def test_callable_loads_pointwise_pressure_on_closed_triangles(monkeypatch):
     mine = np.linalg.norm(layer.osc1[floppy])
     data = np.linalg.norm(plain.maps["eta_osc1"][rows][floppy])
     assert mine <= 1e-3 * data  # measured 9.8e-7: the ratio mu1 / (mu1 + mu2)
+
+
+def test_direct_z_solves_only_when_the_factor_fits(monkeypatch):
+    """Direct layer solves up to LAYER_DIRECT_VERTICES only while two factors' estimate
+    (LAYER_FACTOR_BYTES per vertex times log2(n) / 20 each) fits in 35 % of the memory."""
+    from fastmem.layers import _direct_fits
+    from fastmem.options import MEMORY_LIMIT_ENV
+
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "1G")  # 350 MB: ~67k vertices
+    assert _direct_fits(50_000)
+    assert not _direct_fits(100_000)
+    monkeypatch.setenv(MEMORY_LIMIT_ENV, "0")  # no limit: only what the process can reach
+    assert _direct_fits(50_000)
