@@ -663,7 +663,8 @@ def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, delta, closed, cuts):
     w = []
     for (_, solve, _, free, b), ck, sign in zip(spaces, cmat, (1.0, -1.0), strict=True):
         # one solve with the data and the kc component loads as columns (by CG: the
-        # loads only choose alpha, any alpha keeps the bound; z is solved again below)
+        # loads only choose alpha, any alpha keeps the bound; z is solved again below,
+        # also when direct)
         cols = np.column_stack([b[free], sign * ck[:, free].T.toarray()])
         sol = solve(cols, ALPHA_CG_TOL, ALPHA_CG_MAXITER)
         z.append(sol[:, 0])
@@ -693,13 +694,17 @@ def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, delta, closed, cuts):
     scale = np.ones(len(sel))
     scale[on] += alpha[comp[on]]
     zs, epss, extra = [], [], []
-    for sp_, ck, zi, wi, i in zip(spaces, cmat, z, w, (1, 2), strict=True):
+    for sp_, ck, i in zip(spaces, cmat, (1, 2), strict=True):
         cutinfo, _, matrix, free, b = sp_
         sign = 1.0 if i == 1 else -1.0
         full = np.zeros(b.size)
         rhs = b + sign * (ck.T @ alpha) if kc else b
         solve = sp_[1]
-        full[free] = (zi + alpha @ wi if kc else zi) if solve.exact else solve(rhs[free])
+        # solved again, also when direct: the combination zi + alpha @ wi cancels large
+        # responses (mu = 1e-6) and leaves round-off that rho carries at the price 1/h
+        # (checkerboard 1e-6 refined 44 times at a cross point, h = 4e-8: eps 8e-12 per
+        # vertex, eta_glob1 0.17 against 6e-6 by the standard bound)
+        full[free] = solve(rhs[free])
         if cutinfo is None:
             eps = rhs - scene.weighted_stiffness(i) @ full
             eps[bnd] = 0.0

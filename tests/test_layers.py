@@ -453,3 +453,26 @@ def test_direct_z_solves_only_when_the_factor_fits(monkeypatch):
     assert not _direct_fits(100_000)
     monkeypatch.setenv(MEMORY_LIMIT_ENV, "0")  # no limit: only what the process can reach
     assert _direct_fits(50_000)
+
+
+def test_layer_bound_stable_on_a_graded_cross_point(monkeypatch):
+    """Checkerboard 1e-6, f = (-4, 2), refined 44 times at the cross point (0, -0.5)
+    (h_min 4e-8): the z solves' leftover stays at round-off.  It is carried by rho at the
+    price 1/h; when z was assembled from the large responses of the alpha solve, the
+    layer bound's eta_glob1 was 0.17 there against 6e-6 by the standard bound."""
+    from fastmem.refine import refine_marked
+
+    mesh = fm.Mesh.square(16)
+    for _ in range(44):
+        cen = mesh.vertices[mesh.triangles].mean(axis=1)
+        near = np.hypot(cen[:, 0], cen[:, 1] + 0.5) <= 1.5 * mesh.diameters
+        mesh = refine_marked(mesh, near)[0]
+    assert mesh.diameters.min() < 1e-7
+    scene = fm.Scene(mesh, mu=(_checkerboard(mesh, 1e-6), 1.0), f=(-4.0, 2.0), g=0.1)
+    res = fm.solve(scene, method="exact", estimate=False)
+    est = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert est.totals["layer_bound"] == 1.0
+    monkeypatch.setattr(fm.layers, "LAYER_BOUND", False)
+    plain = bound.estimate(scene, res.u1, res.u2, res.lam)
+    assert est.totals["eta_glob1"] <= 10.0 * plain.totals["eta_glob1"] + 1e-9
+    assert est.eta <= 0.38  # 0.3729; 0.373 on the unrefined mesh (n = 16)
