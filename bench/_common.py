@@ -258,7 +258,7 @@ def poisson_unit(mesh, repeat=3, warmup=1, blas_threads=None):
     import numpy as np
     import pyamg
 
-    from fastmem.assembly import assemble_stiffness
+    from fastmem.fem.assembly import assemble_stiffness
     from fastmem.config import blas_limits, get_threads
 
     ii = mesh.interior_vertices

@@ -35,7 +35,7 @@ solve from scratch with the same method on the final adapted mesh
 iteration, as for any mesh without a coarser version; topology built).
 
 One more adaptive run per case at the tightest tolerance, not timed as a
-whole, records each level's solution (``fastmem.afem``'s per-mesh solve is
+whole, records each level's solution (``fastmem.adapt.loop``'s per-mesh solve is
 wrapped): the true energy error and the effectivity eta / error per level
 (manufactured case), and the Poisson unit of every level mesh with at least
 ``--refine-min-vertices`` vertices, so that each level's refinement time
@@ -387,10 +387,10 @@ def adaptive_runs(case, tols, urows, a):
 def trace(case, tol, a):
     """Per-level solutions of one adaptive loop: error, effectivity, Poisson unit of the mesh.
 
-    Wraps the per-mesh solve of :mod:`fastmem.afem` (not timed as a whole).
+    Wraps the per-mesh solve of :mod:`fastmem.adapt.loop` (not timed as a whole).
     Without that hook (renamed), reruns the loop with ``max_levels = 1, 2, ...``.
     """
-    import fastmem.afem as afem
+    import fastmem.adapt.loop as afem
 
     levels = []
     last = [None]  # the mesh of the last entry: a second solve on it replaces the entry
@@ -424,7 +424,7 @@ def trace(case, tol, a):
             r = _adaptive_call(case, tol, a)
         finally:
             afem.solve_levels = inner
-        method = "wrapped fastmem.afem.solve_levels"
+        method = "wrapped fastmem.adapt.loop.solve_levels"
     else:  # pragma: no cover - fallback
         import fastmem as fm
 

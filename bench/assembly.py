@@ -22,7 +22,7 @@ _COMPILE_SNIPPET = """
 import time
 t0 = time.perf_counter()
 import fastmem as fm
-from fastmem.assembly import assemble_stiffness, assemble_mass, assemble_load
+from fastmem.fem.assembly import assemble_stiffness, assemble_mass, assemble_load
 t1 = time.perf_counter()
 m = fm.Mesh.square(4)
 assemble_stiffness(m); assemble_mass(m); assemble_load(m, lambda x, y: x)
@@ -54,7 +54,8 @@ def run(sizes, repeat):
     from fastmem.kernels import sparsity as ks
 
     import fastmem as fm
-    from fastmem.assembly import assemble_stiffness, csr_structure
+    from fastmem.fem.assembly import assemble_stiffness
+    from fastmem.mesh.pattern import csr_structure
 
     try:
         import skfem

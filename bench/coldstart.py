@@ -8,7 +8,7 @@ process:
 
 * ``cold``: ``fastmem run --no-save`` (the README's first command without the
   install) with the empty cache: wall time of the whole process (the flux
-  kernel compiles in a helper process meanwhile, :mod:`fastmem.warmup`);
+  kernel compiles in a helper process meanwhile, :mod:`fastmem.cli.warmup`);
 * ``cold_no_helper``: the same with ``FASTMEM_COMPILE_HELPER=0`` and another
   empty cache (everything compiles in the one process: the baseline of the
   helper, measured in the same run);

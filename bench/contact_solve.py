@@ -56,7 +56,7 @@ def _prepare(scene):
 
 def run_one(scene, method, nested, path, repeat, budget, ms=None):
     import fastmem as fm
-    from fastmem.loaddata import forget
+    from fastmem.fem.loaddata import forget
 
     def once():
         # every repetition evaluates the loads afresh (their values are cached on the scene)
@@ -81,7 +81,7 @@ def run_one(scene, method, nested, path, repeat, budget, ms=None):
         "eta_alg": r.estimate.totals["eta_alg"],
         "contact_fraction": r.contact_fraction,
     }
-    # every method runs the same levels and writes the same history (fastmem.history)
+    # every method runs the same levels and writes the same history (fastmem.solver.history)
     levels = solver["levels"]
     row["levels"] = levels
     row["newton_per_level"] = [lv["newton"] for lv in levels]

@@ -3,7 +3,7 @@
 Four sections, written to ``bench/results/cross_points.json``:
 
 * ``kellogg``: eta / exact error on Kellogg's cross-point solution
-  (:mod:`fastmem.kellogg`, contrasts 10, 161.45, 1e3, 1e6; uniform n = 16 ... 128;
+  (:mod:`fastmem.problems.kellogg`, contrasts 10, 161.45, 1e3, 1e6; uniform n = 16 ... 128;
   exact and inexact solves), with the cross-point correction as it is
   (``glob=True``: global P1 stream functions plus the rings' P2 bubbles) and with
   the rings alone (``glob=False``, the correction before), on the same triples.
@@ -59,8 +59,8 @@ ADAPTIVE = (
 def _eta(scene, r, glob):
     """The bound of result r with the cross-point correction's global part on or off."""
     import fastmem as fm
-    import fastmem.bound as fb
-    from fastmem import flux
+    import fastmem.estimators.bound as fb
+    from fastmem.estimators import flux
 
     orig = fb.cross_point_correction
     try:
@@ -74,7 +74,7 @@ def _eta(scene, r, glob):
 
 def run_kellogg(sizes):
     import fastmem as fm
-    from fastmem.kellogg import Kellogg
+    from fastmem.problems.kellogg import Kellogg
 
     rows = []
     for contrast in KELLOGG_CONTRASTS:
@@ -190,8 +190,8 @@ def run_adaptive(ref_levels=2):
 def run_cost(sizes, repeat):
     import fastmem as fm
     from bench.estimate import BASE_COMMIT, base_reconstruct
-    from fastmem import flux
-    from fastmem.kellogg import Kellogg
+    from fastmem.estimators import flux
+    from fastmem.problems.kellogg import Kellogg
 
     old = base_reconstruct(BASE_COMMIT)
     rows = []

@@ -11,11 +11,11 @@ permutation of its vertices ("permuted") and a gmsh mesh of element size
 is the contact set of the default scene (f = (-1, 1), g = 0.1) solved on
 ``Mesh.square(32)``, transferred to every mesh by nearest vertex.
 
-Orderings: ``nested-dissection`` (:func:`fastmem.direct.factorize` with the
+Orderings: ``nested-dissection`` (:func:`fastmem.linalg.direct.factorize` with the
 vertex of every unknown), ``nested-dissection-graph`` (the same without
 coordinates), ``rcm+MMD`` (reverse Cuthill-McKee renumbering, then SuperLU's
 MMD_AT_PLUS_A), and on the given numbering SuperLU's ``MMD_AT_PLUS_A`` (the
-former ``fastmem.linear`` default; only up to ``--mmd-max`` cells per side:
+former ``fastmem.solver.linear`` default; only up to ``--mmd-max`` cells per side:
 it takes 2-60 s at n = 128 on badly numbered meshes) and ``COLAMD`` (up to
 ``--colamd-max``).  Every candidate gets the same matrix, explicit zeros
 dropped.  Rows: mesh x n x system x ordering with seconds (ordering plus
@@ -87,7 +87,7 @@ def reference_contact():
 def systems(mesh, reference):
     """{system: (matrix, coordinates per unknown)} of the solver's factorisations on ``mesh``."""
     import fastmem as fm
-    from fastmem.linear import GeneralStep
+    from fastmem.solver.linear import GeneralStep
 
     step = GeneralStep(fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
     xy = mesh.vertices[mesh.interior_vertices]
@@ -132,7 +132,7 @@ def factor(ordering, a, coords):
     """(solve function, fill) of one candidate ordering."""
     from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-    from fastmem.direct import factorize
+    from fastmem.linalg.direct import factorize
 
     if ordering in ("nested-dissection", "nested-dissection-graph"):
         lu = factorize(a, coords if ordering == "nested-dissection" else None)
@@ -162,7 +162,7 @@ def measure(ordering, a, coords, repeat, budget):
 
 
 def run(sizes, repeat, budget, mmd_max, colamd_max):
-    from fastmem.direct import factorize
+    from fastmem.linalg.direct import factorize
 
     factorize(2.0 * np.eye(4), np.zeros((4, 2)))  # load the JIT cache
     reference = reference_contact()

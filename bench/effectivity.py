@@ -27,7 +27,7 @@ misses most of it, which the order s and ``eta_ref`` show.
     python -m bench.effectivity [--quick] [--sizes 16 32 64 128] [--ref-levels 3]
 
 ``--glued effectivity`` / ``--glued cost`` (issue 16, the glued contact load of
-fastmem.flux.glued_contact_load)
+fastmem.estimators.flux.glued_contact_load)
 instead measures, on the same triples, the bound with the glued contact load
 (what fastmem.estimate computes) and with the projected redistribution it
 replaced (``eta_projected``): the manufactured family for the five tensions of
@@ -87,7 +87,7 @@ def prolong(mesh, u):
 
 def energy(fine, mu, e1, e2):
     """``(sum_i (mu_i grad e_i, grad e_i))^(1/2)`` on the fine mesh (per-triangle mu)."""
-    from fastmem.assembly import assemble_stiffness
+    from fastmem.fem.assembly import assemble_stiffness
 
     out = 0.0
     for m, e in zip(mu, (e1, e2), strict=True):
@@ -138,13 +138,13 @@ def chain_solutions(chain, ref_scene, ref, sizes, mu_of, c, f, estimate=False):
 def eta_projected(scene, r):
     """The bound of result r with the projected redistribution (before the glued load).
 
-    fastmem.bound.evaluate as it was before the glued contact load: the flux of
+    fastmem.estimators.bound.evaluate as it was before the glued contact load: the flux of
     ``reconstruct``'s default (``redistribute=True``), the cross-point
     correction, and the plain c and data oscillation.
     """
-    from fastmem.bound import flux_terms
-    from fastmem.estimators import combine, global_terms, local_terms
-    from fastmem.flux import cross_point_correction, reconstruct
+    from fastmem.estimators.bound import flux_terms
+    from fastmem.estimators.terms import combine, global_terms, local_terms
+    from fastmem.estimators.flux import cross_point_correction, reconstruct
 
     lam = np.where(scene.mesh.boundary_vertex_mask, 0.0, r.lam)
     fl = reconstruct(scene, r.u1, r.u2, lam, r.r1, r.r2)
@@ -318,7 +318,7 @@ def flux_cost(n, repeats):
     and the manufactured (1e-6, 1e6) case (callable loads), all at ``Mesh.square(n)``.
     """
     import fastmem as fm
-    from fastmem.flux import reconstruct
+    from fastmem.estimators.flux import reconstruct
 
     mesh = fm.Mesh.square(n)
     scenes = {
@@ -369,9 +369,9 @@ def run_glued(args):
     t0 = time.perf_counter()
     methods = ("exact", "inexact")
     section = {
-        "note": "eta: the bound with the glued contact load (fastmem.flux.glued_contact_load); "
+        "note": "eta: the bound with the glued contact load (fastmem.estimators.flux.glued_contact_load); "
         "eta_projected: the same triple with the projected redistribution it replaced; "
-        "flux_cost: fastmem.flux.reconstruct with redistribute='glued' (the bound's) vs "
+        "flux_cost: fastmem.estimators.flux.reconstruct with redistribute='glued' (the bound's) vs "
         "redistribute=True, alternating, exclusive CPU lock",
     }
     if args.glued == "cost":

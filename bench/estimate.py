@@ -37,7 +37,7 @@ MIN_SECONDS = 1.0
 
 def run(sizes, repeat, solve_max):
     import fastmem as fm
-    from fastmem.flux import reconstruct
+    from fastmem.estimators.flux import reconstruct
 
     fm.estimate(*_lifting(fm.Scene(fm.Mesh.square(8), f=(-1.0, 1.0), g=0.1)))  # JIT caches
     rows = []
@@ -92,13 +92,24 @@ def run(sizes, repeat, solve_max):
 BASE_COMMIT = "50e810d6a930b7dc32ef37f8e82332eda87a38ae"
 
 
+#: The flat-layout imports of the base commit's fastmem/flux.py and where those names live now.
+_BASE_IMPORTS = {
+    "from .assembly import csr_structure": "from fastmem.mesh.pattern import csr_structure",
+    "from .errors import DataError": "from fastmem.errors import DataError",
+    "from .kernels import flux as _kf": "from fastmem.kernels import flux as _kf",
+    "from .linear import residuals": "from fastmem.fem.residual import residuals",
+    "from .loaddata import integrals": "from fastmem.fem.loaddata import integrals",
+}
+
+
 def base_reconstruct(commit):
     """``reconstruct`` of ``commit``: its fastmem/flux.py and kernels/flux.py as temporary modules.
 
     The kernel module is registered as ``fastmem.kernels._flux_base`` (its
     relative imports resolve in the installed package; Numba caches it next to
     the temporary file), the wrapper as ``fastmem._flux_base`` with its kernel
-    module replaced by that one.
+    module replaced by that one.  The wrapper's imports name the flat layout of
+    that commit; they are pointed at today's modules (:data:`_BASE_IMPORTS`).
     """
     root = Path(__file__).resolve().parent.parent
     tmp = Path(tempfile.mkdtemp(prefix="fastmem_flux_base_"))
@@ -114,6 +125,8 @@ def base_reconstruct(commit):
             capture_output=True,
             text=True,
         ).stdout
+        for old, new in _BASE_IMPORTS.items():
+            src = src.replace(old, new)
         file = tmp / (name.rsplit(".", 1)[1] + ".py")
         file.write_text(src)
         spec = importlib.util.spec_from_file_location(name, file)
@@ -149,8 +162,8 @@ def _comparison_scenes(mesh):
 def compare(sizes, repeat, commit):
     """patches/s of the current and the base reconstruction, alternating, same process."""
     import fastmem as fm
-    from fastmem.flux import reconstruct
-    from fastmem.linear import residuals
+    from fastmem.estimators.flux import reconstruct
+    from fastmem.fem.residual import residuals
 
     old = base_reconstruct(commit)
     tiny = fm.Scene(fm.Mesh.square(8), mu=(np.full(128, 2.0), 1.0), f=(-1.0, 1.0), g=0.1)

@@ -1,4 +1,4 @@
-"""Floppy membranes: the layer bound's effectivity and cost (issue 16, :mod:`fastmem.layers`).
+"""Floppy membranes: the layer bound's effectivity and cost (issue 16, :mod:`fastmem.estimators.layers`).
 
 Four sections, written to ``bench/results/layers.json``:
 
@@ -6,7 +6,7 @@ Four sections, written to ``bench/results/layers.json``:
   of bench/effectivity.py), exact solves, n = 16 ... 64 against a solution
   ``--ref-levels`` refinements finer.  For each triple: the bound as returned
   (the smaller of the layer bound and the standard one), the standard bound
-  alone (``fastmem.layers.LAYER_BOUND = False``), the layer bound without the
+  alone (``fastmem.estimators.layers.LAYER_BOUND = False``), the layer bound without the
   cross-point cut and without the connected squeeze, the reference error and the
   bracket of the true effectivity that the reference allows,
   [eta / (err_ref^2 + eta_ref^2)^(1/2), eta / err_ref] (eta_ref: the
@@ -15,7 +15,7 @@ Four sections, written to ``bench/results/layers.json``:
   so err_ref misses its energy and eta / err_ref overstates the effectivity.
 * ``lshape``: the two-material L-shape (mu1 = 1 for x < 0, c for x > 0), the
   same columns.
-* ``cost``: seconds of the whole bound (``fastmem.bound.estimate``): the
+* ``cost``: seconds of the whole bound (``fastmem.estimators.bound.estimate``): the
   standard bound alone, with the layer bound but without the cross-point cut,
   without the connected squeeze (``CONNECTED_BAND = False``) and as shipped, on
   the same triple: first call on a fresh scene (with its
@@ -57,8 +57,8 @@ LSHAPE = (1e-6, 1e-3)
 def _bounds(scene, r):
     """(eta as returned, standard eta, eta without the cross-point cut, eta without the
     connected squeeze, layer used)."""
-    import fastmem.layers as fl
-    from fastmem.bound import estimate
+    import fastmem.estimators.layers as fl
+    from fastmem.estimators.bound import estimate
 
     est = estimate(scene, r.u1, r.u2, r.lam)
     try:
@@ -135,8 +135,8 @@ VARIANTS = {
 
 def run_cost(sizes, repeat):
     import fastmem as fm
-    import fastmem.layers as fl
-    from fastmem.bound import estimate
+    import fastmem.estimators.layers as fl
+    from fastmem.estimators.bound import estimate
 
     rows = []
     for c, f in ((1e-6, (-1.0, 1.0)), (1e-3, (-1.0, 1.0)), (1e-3, (-4.0, 2.0))):
@@ -200,8 +200,8 @@ def run_adaptive_reference(sizes, quick=False):
 
     import fastmem as fm
     from bench.effectivity import energy
-    from fastmem.bound import estimate
-    from fastmem.coarsen import locate
+    from fastmem.estimators.bound import estimate
+    from fastmem.mesh.coarsen import locate
 
     rows = []
     for family, c, f, tol in ADAPTIVE_REFERENCE:

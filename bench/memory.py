@@ -23,7 +23,7 @@ while in it (GB) and in bytes per vertex of the mesh; the overall peak and
 the RSS of the retained objects (mesh, scene, result) at the end.
 
 The inexact step frees its matrices and hierarchies during the flux
-reconstructions only under memory pressure (``fastmem.adaptive.SPILL =
+reconstructions only under memory pressure (``fastmem.solver.inexact.SPILL =
 "auto"``); ``--spill on`` / ``off`` forces it, to measure what it saves on sizes
 that fit without it.
 
@@ -104,24 +104,24 @@ class PhaseMemory:
 
 def _install(tracker):
     """Wrap the phase functions wherever a fastmem module holds them."""
-    import fastmem.amg
-    import fastmem.archive_write
-    import fastmem.assembly
-    import fastmem.bound
-    import fastmem.flux
-    import fastmem.levels
-    import fastmem.newton
+    import fastmem.linalg.amg
+    import fastmem.io.writer
+    import fastmem.fem.assembly
+    import fastmem.estimators.bound
+    import fastmem.estimators.flux
+    import fastmem.solver.levels
+    import fastmem.solver.newton
 
     targets = [
-        (fastmem.assembly, "assemble_stiffness", "assembly"),
-        (fastmem.assembly, "assemble_mass", "assembly"),
-        (fastmem.assembly, "assemble_load", "assembly"),
-        (fastmem.levels, "_chain", "coarse chain"),
-        (fastmem.newton, "newton_min", "newton"),
-        (fastmem.flux, "reconstruct", "flux/estimators"),
-        (fastmem.bound, "flux_terms", "flux/estimators"),
-        (fastmem.bound, "evaluate", "flux/estimators"),
-        (fastmem.archive_write, "write_archive", "archive"),
+        (fastmem.fem.assembly, "assemble_stiffness", "assembly"),
+        (fastmem.fem.assembly, "assemble_mass", "assembly"),
+        (fastmem.fem.assembly, "assemble_load", "assembly"),
+        (fastmem.solver.levels, "_chain", "coarse chain"),
+        (fastmem.solver.newton, "newton_min", "newton"),
+        (fastmem.estimators.flux, "reconstruct", "flux/estimators"),
+        (fastmem.estimators.bound, "flux_terms", "flux/estimators"),
+        (fastmem.estimators.bound, "evaluate", "flux/estimators"),
+        (fastmem.io.writer, "write_archive", "archive"),
     ]
     wrapped = 0
     for module, name, phase in targets:
@@ -135,7 +135,7 @@ def _install(tracker):
                     if value is original:
                         setattr(mod, attr, new)
                         wrapped += 1
-    cls = fastmem.amg.AMGPreconditioner
+    cls = fastmem.linalg.amg.AMGPreconditioner
     cls.__init__ = tracker.wrap("amg setup", cls.__init__)
     return wrapped + 1
 
@@ -145,10 +145,10 @@ SPILL_MODES = {"auto": "auto", "on": True, "off": False}
 
 def worker(n: int, spill: str = "auto") -> dict:
     import fastmem as fm
-    import fastmem.adaptive
-    from fastmem.options import estimate_memory
+    import fastmem.solver.inexact
+    from fastmem.memory import estimate_memory
 
-    fastmem.adaptive.SPILL = SPILL_MODES[spill]
+    fastmem.solver.inexact.SPILL = SPILL_MODES[spill]
 
     fm.warm_up("inexact")  # kernels compiled or loaded before anything is measured
     gc.collect()
@@ -183,7 +183,7 @@ def worker(n: int, spill: str = "auto") -> dict:
         "peak_bytes": peaks,
         "peak_bytes_per_vertex": {p: v / nv for p, v in peaks.items()},
         "overall_peak_bytes": max(peaks.values()),
-        # the memory guard's estimate (fastmem.options.estimate_memory) for this run
+        # the memory guard's estimate (fastmem.memory.estimate_memory) for this run
         "guard_estimate_bytes": estimate_memory(nv, mesh.n_triangles, "inexact", True),
     }
 

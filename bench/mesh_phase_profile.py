@@ -84,7 +84,7 @@ def worker(n, state="asis"):
     from fastmem.kernels import topology as kt
 
     import fastmem as fm
-    from fastmem import mesh as fmesh
+    from fastmem.mesh import mesh as fmesh
 
     m = fm.Mesh.square(8)
     _ = m.edges, m.triangle_edges, m.patch_ptr, m.interior_vertices

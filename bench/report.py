@@ -1,4 +1,4 @@
-"""Fill the README "Performance" section (bench/PERFORMANCE.md) from the result JSON files.
+"""Fill the "Performance" section of docs/performance.md (template bench/PERFORMANCE.md).
 
 Every ``{placeholder}`` of the template whose value can be computed from
 ``<results>/<name>.json`` is replaced; the others stay as they are, so a
@@ -6,7 +6,14 @@ missing full run is visible.  ``--quick`` reads the ``*_quick.json`` files
 instead (for checking the machinery, not for publishing).  ``--figures``
 redraws every PNG from its JSON.
 
+By default the filled section is printed.  ``--write`` replaces the text
+between the ``<!-- begin section -->`` and ``<!-- end section -->`` markers
+of docs/performance.md (the rest of that page is written by hand);
+``--check`` writes nothing and exits with status 1 when that text differs
+from the filled section.
+
     python -m bench.report [--quick] [--results DIR] [--figures] [--missing]
+                           [--write | --check] [--doc FILE]
 """
 
 import argparse
@@ -18,6 +25,9 @@ from pathlib import Path
 from bench._common import result_name, results_dir
 
 TEMPLATE = Path(__file__).resolve().parent / "PERFORMANCE.md"
+#: The page that holds the filled section, between the same markers as the template.
+DOC = Path(__file__).resolve().parent.parent / "docs" / "performance.md"
+BEGIN, END = "<!-- begin section -->", "<!-- end section -->"
 
 #: Benchmarks in the order ``python -m bench`` runs them.
 BENCHMARKS = (
@@ -540,6 +550,22 @@ def figures(quick=False, folder=None):
     return out
 
 
+def section(text, strict=False):
+    """The text between the markers (without them, and not ``strict``: all of ``text``)."""
+    if BEGIN not in text or END not in text:
+        if strict:
+            raise ValueError(f"the markers {BEGIN} and {END} are missing")
+    return text.split(BEGIN, 1)[-1].split(END, 1)[0]
+
+
+def replace_section(page_text, body):
+    """``page_text`` with the text between its markers replaced by ``body``."""
+    head, rest = page_text.split(BEGIN, 1)
+    tail = rest.split(END, 1)[1]
+    body = body.strip("\n")
+    return f"{head}{BEGIN}\n{body}\n{END}{tail}"
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="read the *_quick.json files")
@@ -547,17 +573,51 @@ def main(argv=None):
     p.add_argument("--template", type=Path, default=TEMPLATE)
     p.add_argument("--figures", action="store_true", help="redraw the PNG figures too")
     p.add_argument("--missing", action="store_true", help="list unfilled placeholders")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument(
+        "--write", action="store_true", help="replace the section between the markers of --doc"
+    )
+    mode.add_argument(
+        "--check",
+        action="store_true",
+        help="write nothing; exit with status 1 when the section of --doc is out of date",
+    )
+    p.add_argument(
+        "--doc",
+        type=Path,
+        default=DOC,
+        help="the page that holds the section (docs/performance.md)",
+    )
     args = p.parse_args(argv)
+    if args.write and args.quick and args.doc.resolve() == DOC:
+        p.error("--quick results are not for publishing: give --doc to write them elsewhere")
     vals = values(args.quick, args.results)
-    text = args.template.read_text()
-    body = text.split("<!-- begin section -->", 1)[-1].split("<!-- end section -->", 1)[0]
-    sys.stdout.write(fill(body.strip("\n"), vals) + "\n")
+    body = section(args.template.read_text())
+    filled = fill(body.strip("\n"), vals)
+    status = 0
+    if args.write or args.check:
+        page = args.doc.read_text(encoding="utf-8")
+        try:
+            current = section(page, strict=True)
+        except ValueError as exc:
+            p.error(f"{args.doc}: {exc}")
+        if current.strip("\n") == filled:
+            sys.stderr.write(f"{args.doc}: the section is up to date\n")
+        elif args.check:
+            sys.stderr.write(f"{args.doc}: the section differs from the filled template\n")
+            status = 1
+        else:
+            args.doc.write_text(replace_section(page, filled), encoding="utf-8")
+            sys.stderr.write(f"wrote the section of {args.doc}\n")
+    else:
+        sys.stdout.write(filled + "\n")
     if args.missing:
         sys.stderr.write("unfilled: " + ", ".join(missing(body, vals)) + "\n")
     if args.figures:
         for path in figures(args.quick, args.results):
             sys.stderr.write(f"wrote {path}\n")
+    return status
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -1,6 +1,6 @@
 """Parameter sweeps on Dask: a LocalCluster of 2 workers against a serial loop, same run.
 
-The study: ``fastmem.sweeps.standard_scene`` (the default data of ``fastmem
+The study: ``fastmem.sweeps.study.standard_scene`` (the default data of ``fastmem
 run``, docs/method.md §8) at n = 256 over 8 stiffness ratios mu2 x 4 gaps g =
 32 scenes, each solved with ``fm.solve`` defaults (inexact Newton-min, nested
 iteration, guaranteed bound) and written as an archive.  ``--quick``: 8 scenes
@@ -102,7 +102,7 @@ def _pool_init():
     import numba
 
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     numba.set_num_threads(1)
     fm.solve(sweeps.standard_scene(n=8))
@@ -115,7 +115,7 @@ def _pid(_):
 def _pool_run(job):
     """Solve and save one run in a pool process; return its seconds."""
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     folder, params = job
     t0 = time.perf_counter()
@@ -125,7 +125,7 @@ def _pool_run(job):
 
 def pool_loop(runs, folder, workers):
     """The runs on a fresh pool of plain processes (no Dask); return wall time and task times."""
-    from fastmem.sweeps import _restored_environ
+    from fastmem.sweeps.study import _restored_environ
 
     with _restored_environ(_ONE_THREAD_BLAS):
         os.environ.update(dict.fromkeys(_ONE_THREAD_BLAS, "1"))  # inherited by the spawned pool
@@ -167,7 +167,7 @@ def task_split(table, log):
 
 def index_write_ms(table, folder, repeat=20):
     """Milliseconds of one rewrite of the study's index (the client's work after each run)."""
-    from fastmem.sweep_index import _read_index, _write_index
+    from fastmem.sweeps.index import _read_index, _write_index
 
     attrs, rows = _read_index(folder)
     t0 = time.perf_counter()
@@ -179,7 +179,7 @@ def index_write_ms(table, folder, repeat=20):
 def serial_loop(runs, folder):
     """Solve and save every run in this process; return the seconds of the whole loop."""
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     t0 = time.perf_counter()
     for params in runs:
@@ -191,7 +191,7 @@ def serial_loop(runs, folder):
 def serial_worker(grid, folder):
     """``--serial-worker``: warm up, then time the serial loop in this fresh process."""
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     t0 = time.perf_counter()
     fm.solve(sweeps.standard_scene(n=8))  # JIT caches (excluded from the loop)
@@ -209,7 +209,7 @@ def serial(grid, folder):
 def reference(runs, folder):
     """The serial results, read from the archives of a serial loop."""
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     out = {}
     for params in runs:
@@ -228,7 +228,7 @@ def reference(runs, folder):
 def run_sweep(client, grid, folder):
     """One sweep into a fresh folder; return its wall time, table, write log and CPU seconds."""
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     workers0, client0 = client.run(_cpu_seconds), _cpu_seconds()
     t0 = time.perf_counter()
@@ -306,7 +306,7 @@ def main(argv=None):
     import numba
 
     import fastmem as fm
-    from fastmem import sweeps
+    from fastmem.sweeps import study as sweeps
 
     p = parser(__doc__)
     p.add_argument("--n", type=int, default=None, help="cells per side (default 256, quick 32)")

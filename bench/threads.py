@@ -4,9 +4,9 @@ For each mesh size (default scene, docs/method.md §8, at its discrete
 solution) and each parallel kernel:
 
 * ``assembly``: ``assemble_stiffness`` (fused local-matrix + CSR gather kernel);
-* ``flux``: ``fastmem.flux.reconstruct`` (patch problems, both membranes);
+* ``flux``: ``fastmem.estimators.flux.reconstruct`` (patch problems, both membranes);
 * ``estimate``: ``fm.estimate`` (flux reconstruction and all estimators);
-* ``locate``: ``fastmem.nested.interpolation_matrix`` from the next coarser
+* ``locate``: ``fastmem.solver.nested.interpolation_matrix`` from the next coarser
   mesh (bucket grid + parallel point location).
 
 The Numba thread count is set with ``fm.set_threads(numba=k)``; after one
@@ -58,9 +58,9 @@ def _difference(a, b):
 def kernels(n):
     """(name, work units, callable) of each parallel kernel on the mesh n x n."""
     import fastmem as fm
-    from fastmem.assembly import assemble_stiffness
-    from fastmem.flux import reconstruct
-    from fastmem.nested import interpolation_matrix
+    from fastmem.fem.assembly import assemble_stiffness
+    from fastmem.estimators.flux import reconstruct
+    from fastmem.solver.nested import interpolation_matrix
 
     mesh = fm.Mesh.square(n)
     scene = fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)

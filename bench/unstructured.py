@@ -3,7 +3,7 @@
 For meshes without a coarser version (a randomly perturbed square mesh, a
 gmsh mesh of the unit disk when the gmsh package is installed), the inexact
 solve with ``nested="auto"`` (auxiliary coarse meshes from subsets of the
-vertices, :mod:`fastmem.coarsen`) against ``nested=False`` (Newton-min from
+vertices, :mod:`fastmem.mesh.coarsen`) against ``nested=False`` (Newton-min from
 the unconstrained solution), on the default scene (docs/method.md §8) and,
 on the square, the default manufactured solution (section 7).  Per run:
 Newton steps per level and on the finest mesh, CG iterations, time (median

@@ -44,7 +44,7 @@ def main() -> None:
     print(f"second sweep: {(again.status == 'done').sum()} runs done, {after - before} solved")
 
     try:
-        from fastmem.sweep_cli import plot_sweep
+        from fastmem.cli.sweep import plot_sweep
 
         png = out / "contact_fraction-vs-mu2.png"
         plot_sweep(out, "mu2", "contact_fraction", out=png)

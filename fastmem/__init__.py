@@ -9,7 +9,9 @@ Quick start::
     result.save("run.h5")
 """
 
+import importlib.util as _importlib_util
 import os as _os
+import sys as _sys
 
 # OpenMP workers (Numba's "omp" threading layer) that spin while idle turn
 # every short parallel kernel into a 5-15 ms wait as soon as another process
@@ -27,21 +29,17 @@ def _source_tree_kernels():
     -m bench``, ``python -c ...``) finds the source folder ``fastmem/`` first,
     which has no ``kernels`` subfolder: load ``../kernels`` under that name.
     """
-    import importlib.util
-    import os
-    import sys
-
-    here = os.path.dirname(os.path.abspath(__file__))
-    if os.path.isdir(os.path.join(here, "kernels")) or "fastmem.kernels" in sys.modules:
+    here = _os.path.dirname(_os.path.abspath(__file__))
+    if _os.path.isdir(_os.path.join(here, "kernels")) or "fastmem.kernels" in _sys.modules:
         return
-    init = os.path.join(os.path.dirname(here), "kernels", "__init__.py")
-    if not os.path.isfile(init):
+    init = _os.path.join(_os.path.dirname(here), "kernels", "__init__.py")
+    if not _os.path.isfile(init):
         return
-    spec = importlib.util.spec_from_file_location(
-        "fastmem.kernels", init, submodule_search_locations=[os.path.dirname(init)]
+    spec = _importlib_util.spec_from_file_location(
+        "fastmem.kernels", init, submodule_search_locations=[_os.path.dirname(init)]
     )
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["fastmem.kernels"] = module
+    module = _importlib_util.module_from_spec(spec)
+    _sys.modules["fastmem.kernels"] = module
     spec.loader.exec_module(module)
     globals()["kernels"] = module  # as the import system does for a submodule
 
@@ -49,38 +47,20 @@ def _source_tree_kernels():
 _source_tree_kernels()
 
 from . import errors  # noqa: E402
-from .archive import load  # noqa: E402
-from .bound import estimate  # noqa: E402
+from .about import package_version as _package_version  # noqa: E402
+from .cli.warmup import warm_up  # noqa: E402
 from .config import get_threads, set_threads  # noqa: E402
 from .errors import FastmemError  # noqa: E402
-from .manufactured import Manufactured  # noqa: E402
-from .mesh import Mesh  # noqa: E402
-from .result import Estimate, Result  # noqa: E402
-from .scene import Scene  # noqa: E402
-from .solver import solve  # noqa: E402
-from .warmup import warm_up  # noqa: E402
+from .estimators.bound import estimate  # noqa: E402
+from .fem.scene import Scene  # noqa: E402
+from .io.archive import load  # noqa: E402
+from .io.result import Estimate, Result  # noqa: E402
+from .mesh.mesh import Mesh  # noqa: E402
+from .pipeline import solve  # noqa: E402
+from .problems.manufactured import Manufactured  # noqa: E402
+from .sweeps.study import load_sweep, sweep  # noqa: E402
 
-
-def _package_version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("fastmem")
-    except PackageNotFoundError:  # pragma: no cover - running from a source tree
-        return "0+unknown"
-
-
-__version__ = _package_version()
-
-
-def __getattr__(name):
-    # Parameter sweeps need the ``dask`` extra: imported on first use only.
-    if name in ("sweep", "load_sweep"):
-        from . import sweeps as _sweep_module
-
-        return getattr(_sweep_module, name)
-    raise AttributeError(f"module 'fastmem' has no attribute {name!r}")
-
+__version__ = _package_version("0+unknown")
 
 __all__ = [
     "Estimate",

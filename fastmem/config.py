@@ -18,16 +18,20 @@ from __future__ import annotations
 import contextlib
 import os
 
+import numba as _nb
+from threadpoolctl import threadpool_limits
+
 from .errors import InputTypeError, ParameterError
 
-__all__ = ["FASTMATH_FLAGS", "blas_limits", "get_threads", "set_threads"]
+__all__ = ["FASTMATH_FLAGS", "blas_limits", "check_count", "get_threads", "set_threads"]
 
 FASTMATH_FLAGS = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 _settings = {"blas_threads": int(os.environ.get("FASTMEM_BLAS_THREADS", "1"))}
 
 
-def _check_count(name, value):
+def check_count(name, value):
+    """Return ``value`` as an int, refusing anything but a positive integer (naming ``name``)."""
     if isinstance(value, bool) or not hasattr(value, "__index__"):
         raise InputTypeError(f"{name} must be a positive integer, got {value!r}")
     value = int(value)
@@ -46,11 +50,10 @@ def set_threads(numba: int | None = None, blas: int | None = None) -> None:
     blas : int, optional
         Threads the BLAS pool (OpenBLAS, MKL) may use inside solver phases.
     """
-    import numba as _nb
 
     # validate everything before changing anything
-    n = None if numba is None else _check_count("numba threads", numba)
-    b = None if blas is None else _check_count("blas threads", blas)
+    n = None if numba is None else check_count("numba threads", numba)
+    b = None if blas is None else check_count("blas threads", blas)
     if n is not None and n > _nb.config.NUMBA_NUM_THREADS:
         raise ParameterError(
             f"numba threads must be <= NUMBA_NUM_THREADS={_nb.config.NUMBA_NUM_THREADS}, got {n}"
@@ -63,7 +66,6 @@ def set_threads(numba: int | None = None, blas: int | None = None) -> None:
 
 def get_threads() -> dict:
     """Return the current thread settings as ``{"numba": int, "blas": int}``."""
-    import numba as _nb
 
     return {"numba": _nb.get_num_threads(), "blas": _settings["blas_threads"]}
 
@@ -71,8 +73,7 @@ def get_threads() -> dict:
 @contextlib.contextmanager
 def blas_limits(threads: int | None = None):
     """Limit the BLAS thread pool to ``threads`` (default: the configured value) in a block."""
-    from threadpoolctl import threadpool_limits
 
-    n = _settings["blas_threads"] if threads is None else _check_count("blas threads", threads)
+    n = _settings["blas_threads"] if threads is None else check_count("blas threads", threads)
     with threadpool_limits(limits=n, user_api="blas"):
         yield

@@ -72,7 +72,7 @@ class NumericalError(FastmemError, ArithmeticError):
 
 
 class MemoryLimitError(FastmemError, MemoryError):
-    """A run would need more memory than the machine has (:func:`fastmem.options.check_memory`).
+    """A run would need more memory than the machine has (:func:`fastmem.memory.check_memory`).
 
     Raised before anything large is allocated; the message names the estimate, the
     limit and how to override it (``memory_limit=`` or ``FASTMEM_MEMORY_LIMIT``).

@@ -16,7 +16,7 @@ loop: the same arithmetic, a fraction of the compile time.
 import numpy as np
 
 from ._jit import jit
-from ._par import parallel_for
+from .pool import parallel_for
 
 __all__ = [
     "area2_and_diameter2",

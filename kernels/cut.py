@@ -42,7 +42,7 @@ independent of the thread count.  Inputs are not modified.
 import numpy as np
 
 from ._jit import jit
-from ._par import parallel_for
+from .pool import parallel_for
 
 __all__ = ["contact_terms", "positive_area", "positive_product"]
 

@@ -32,7 +32,7 @@ Only sigma is needed, and it is computed from an equivalent smaller problem:
   dividing row by row, results within a few ulps of it.
 * Contact load: ``lam_a psi_a`` (docs/method.md §4), or on the vertices
   flagged in ``redist`` the redistributed load of the same mass computed
-  triangle by triangle from the load moments (fastmem.flux.contact_redistribution).
+  triangle by triangle from the load moments (fastmem.estimators.flux.contact_redistribution).
 * Weighted norm (per-triangle tensions): membrane i minimises
   ``||mu_i^(-1/2) (tau_i^a + v)||`` over the patch, the norm that eta_F
   measures, so M' and the flux target of triangle K carry the factor
@@ -68,7 +68,7 @@ races, and the result does not depend on the number of threads.
 
 import numpy as np
 
-from . import _par
+from . import pool as _par
 from ._jit import jit
 from .rt1 import rt1_dofs_to_coefficients, rt1_local_xy
 
@@ -516,7 +516,7 @@ def _reconstruct_chunk(
                 # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
                 kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
             if redist_a:
-                # redistributed contact load (fastmem.flux.contact_redistribution): the
+                # redistributed contact load (fastmem.estimators.flux.contact_redistribution): the
                 # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
                 # negative vertex values cut to 0, plus gamma_a m_K psi_a
                 ssum = kapj[0] + kapj[1] + kapj[2]
@@ -682,7 +682,7 @@ def precompile(part: str) -> None:
     compile time), ``"solvers"`` (the patch kernel's two largest callees),
     ``"coefficients"`` or ``"estimators"``.  The kernels are
     called on empty ranges with arrays of exactly the types
-    :func:`fastmem.flux.reconstruct` and :func:`fastmem.bound.flux_terms` pass
+    :func:`fastmem.estimators.flux.reconstruct` and :func:`fastmem.estimators.bound.flux_terms` pass
     (read-only mesh arrays, 32-bit topology), so the code compiled here is the
     code a solve uses (tests/test_coldstart.py checks that no second
     specialisation appears).  Nothing is computed.
@@ -804,7 +804,7 @@ def reconstruct_colored(
         Vertices whose contact load is redistributed (shape (1,): none): on
         triangle K the load of patch a is then ``psi_a (mu_1 f_2 - mu_2 f_1) /
         (mu_1 + mu_2) + gamma_a psi_a`` instead of ``lam_a psi_a``
-        (:func:`fastmem.flux.contact_redistribution`).
+        (:func:`fastmem.estimators.flux.contact_redistribution`).
     gamma : float64 (N,) or (1,)
         The mass corrections gamma_a.
     max_nt : int
@@ -813,7 +813,7 @@ def reconstruct_colored(
         Threads; each colour class is cut into at most this many chunks, each
         with its own workspace.
     chi_row, chi_mom : int32 (M,) and float64 (S, 3, 3), optional
-        Glued contact load (:func:`fastmem.flux.glued_contact_load`): on
+        Glued contact load (:func:`fastmem.estimators.flux.glued_contact_load`): on
         triangle t with ``s = chi_row[t] >= 0`` the load moments of membrane 1
         gain ``chi_mom[s]`` and those of membrane 2 lose it (row i: the vertex
         of local index i; zero rows for vertices that are not glued).  Only the

@@ -3,7 +3,7 @@
 import numpy as np
 
 from ._jit import jit
-from ._par import parallel_for
+from .pool import parallel_for
 
 __all__ = ["bucket_grid", "locate_points"]
 

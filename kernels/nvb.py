@@ -1,7 +1,7 @@
 """Newest-vertex bisection (NVB) with conforming closure: the three O(M) passes.
 
 Every triangle carries a refinement edge, given as the local index ``ref[k]``
-(local edge ``i`` is opposite local vertex ``i``; see :mod:`fastmem.mesh`).
+(local edge ``i`` is opposite local vertex ``i``; see :mod:`fastmem.mesh.mesh`).
 Writing ``r = ref[k]``, the triangle is read as ``(v0, v1, v2) = (t[k, r],
 t[k, r+1], t[k, r+2])`` (indices mod 3), still counter-clockwise: ``v0`` is
 its newest vertex and ``(v1, v2)`` its refinement edge.  Bisection at the

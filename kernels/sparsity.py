@@ -11,7 +11,7 @@ computed once per mesh; every later assembly is a gather through them.
 import numpy as np
 
 from ._jit import jit
-from ._par import parallel_for
+from .pool import parallel_for
 
 __all__ = ["csr_pattern", "position_map"]
 

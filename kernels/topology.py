@@ -14,7 +14,7 @@ are int32 (``counts`` and ``forward``: int8, saturated) (half the memory of int6
 12 bytes per half-edge, about 72 per vertex, the retained ``edges`` 24 instead
 of 48), and so are ``tri_edges`` and ``edge_triangles`` (24 instead of 48 bytes per
 vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
-(:data:`fastmem.mesh.INDEX_LIMIT` checks it).  The patch arrays of
+(:data:`fastmem.mesh.mesh.INDEX_LIMIT` checks it).  The patch arrays of
 :func:`vertex_patches` are int32 (triangles) and int8 (local index 0, 1, 2).
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 from numba import prange
 
 from ._jit import jit, pjit
-from ._par import GRAIN, n_threads, parallel_for, ranges, run_ranges, zeros
+from .pool import GRAIN, n_threads, parallel_for, ranges, run_ranges, zeros
 
 __all__ = [
     "edge_topology",
@@ -369,7 +369,7 @@ def vertex_patches(t, ptr):
     ``ptr`` (N + 1,) is the prefix sum of the vertex degrees.  A counting sort,
     O(N + M): the same order as a stable argsort of ``t.ravel()`` (triangles of a
     patch ascending).  Returns ``patch_triangles`` (int32: ``M < 2**31``, checked by
-    :data:`fastmem.mesh.INDEX_LIMIT`) and ``patch_local`` (int8: 0, 1 or 2).
+    :data:`fastmem.mesh.mesh.INDEX_LIMIT`) and ``patch_local`` (int8: 0, 1 or 2).
     A wrapper around the Numba kernel :func:`_fill_patches` (arrays allocated here).
     """
     m = t.shape[0]

@@ -1,6 +1,6 @@
 """Slow, plain NumPy/SciPy reference of the equilibrated flux reconstruction (MATH.md section 4).
 
-Written independently of :mod:`fastmem.flux` (small meshes only, Python loops over
+Written independently of :mod:`fastmem.estimators.flux` (small meshes only, Python loops over
 patches).  Each patch triangle carries the 8 coefficients of the canonical RT1
 representation used by the package: on K with centroid (xc, yc), diameter h,
 xi = (x - xc) / h, eta = (y - yc) / h,
@@ -22,7 +22,7 @@ the factor 1 / mu_K triangle by triangle; ``weighted=False`` gives the unweighte
 problem of earlier versions) is solved with a dense KKT system.  Integrals use a
 collapsed (Duffy) Gauss rule written here, exact to degree 8, except integrals
 of a callable load, which use the package's load rule
-(``fastmem.quadrature.triangle_rule(scene.load_degree)``) so that
+(``fastmem.fem.quadrature.triangle_rule(scene.load_degree)``) so that
 the discrete compatibility (g, 1) = 0 of interior patches holds exactly
 as for the load vector F.  Edge topology and P1 gradients are recomputed here
 from ``mesh.vertices`` / ``mesh.triangles`` (not read from the package's mesh
@@ -34,8 +34,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 
-from fastmem.linear import residuals
-from fastmem.quadrature import triangle_rule
+from fastmem.fem.residual import residuals
+from fastmem.fem.quadrature import triangle_rule
 
 
 # --------------------------------------------------------------------- quadrature

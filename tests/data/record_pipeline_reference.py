@@ -211,7 +211,7 @@ def run_case(case_id: str) -> dict:
     scene = make_scene(scene_name)
     # mujump was recorded when per-triangle tensions had no coarse chain on the
     # structured generators (their transfer to Mesh.coarser() by point location came
-    # later, fastmem.nested._transfer_mu): solved here as recorded, without it
+    # later, fastmem.solver.nested._transfer_mu): solved here as recorded, without it
     options = {"nested": False} if scene_name == "mujump" else {}
     result = fm.solve(scene, method=method, path=path, estimate=True, **options)
     return summarize(result)

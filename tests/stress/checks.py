@@ -155,7 +155,7 @@ def scaled_complementarity(scene, u1, u2, lam) -> float:
 
 def relative_residual(scene, u1, u2, lam) -> float:
     """``||(R1, R2)|| / (sum of the norms of the terms of R)`` (normwise backward error)."""
-    from fastmem.linear import residuals
+    from fastmem.fem.residual import residuals
 
     r1, r2 = residuals(scene, u1, u2, lam)
     f1, f2 = scene.loads

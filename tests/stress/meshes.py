@@ -221,7 +221,7 @@ def positive_offdiagonals(mesh, rel_tol=1e-12):
     The interior block is the matrix of the discrete obstacle problem
     (docs/method.md §3.3); any positive entry means it is not an M-matrix.
     """
-    from fastmem.assembly import assemble_stiffness
+    from fastmem.fem.assembly import assemble_stiffness
 
     ii = mesh.interior_vertices
     a = assemble_stiffness(mesh)[ii][:, ii].tocoo()

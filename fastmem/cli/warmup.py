@@ -1,0 +1,385 @@
+"""Compile (or load from Numba's cache) the kernels a solve needs, before the solve.
+
+The first run of fastmem after an install compiles its Numba kernels (about
+7 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
+in a fraction of a second.  :func:`warm_up` does that work on a tiny problem of
+the same kind, so that a caller (the ``fastmem run`` command, a benchmark) can
+say what is happening and time the solve apart from the compilation.
+
+Compiling is single-threaded Python work in Numba, and the flux patch kernel
+is half of it.  With an empty cache and a second core, :func:`warm_up`
+therefore compiles that kernel in a helper process (it lands in Numba's
+on-disk cache) while it compiles everything else itself, starting with the
+patch kernel's two largest callees, which the helper then loads from the cache
+(if it gets there first, both compile them: slower, same result).
+``fastmem run`` starts the helper before it builds its mesh.  The tiny
+solve waits for the helper only when it reaches the flux reconstruction, then
+loads the kernel from the cache.  ``FASTMEM_COMPILE_HELPER=0`` turns the helper off; if
+it fails, the kernel is compiled in the calling process as without it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import pkgutil
+import subprocess
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from numba.core.dispatcher import Dispatcher
+
+from .. import kernels
+from ..errors import ParameterError
+from ..fem.scene import Scene
+from ..kernels import assembly, flux, rows, topology
+from ..kernels import flux as _kflux
+from ..linalg.amg import precompile
+from ..mesh.coarsen import locate
+from ..mesh.mesh import Mesh
+from ..pipeline import solve
+from ..solver.options import METHODS
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["WarmUp", "kernels_cached", "warm_up"]
+
+
+@dataclass(frozen=True)
+class WarmUp:
+    """What :func:`warm_up` did.
+
+    Attributes
+    ----------
+    seconds : float
+        Wall time of the warm-up (compilation or cache loading, plus a solve of
+        a few hundred vertices).
+    compiled : int
+        Kernel specialisations compiled (not found in Numba's cache).
+    loaded : int
+        Kernel specialisations loaded from Numba's cache.
+    """
+
+    seconds: float
+    compiled: int
+    loaded: int
+    helper: bool = False
+
+    def __str__(self) -> str:
+        what = f"compiled {self.compiled}" if self.compiled else "none compiled"
+        if self.helper:
+            what += " here, the flux kernel in a helper process"
+        return f"{self.seconds:.2f} s ({what}, {self.loaded} loaded from cache)"
+
+
+def _dispatchers() -> list:
+    """Every Numba dispatcher defined at module level in :mod:`fastmem.kernels`."""
+
+
+    found = []
+    for info in pkgutil.iter_modules(kernels.__path__):
+        module = importlib.import_module(f"{kernels.__name__}.{info.name}")
+        for value in vars(module).values():
+            if isinstance(value, Dispatcher) and value.__module__ == module.__name__:
+                found.append(value)
+    return found
+
+
+def _counts(dispatchers) -> tuple[int, int]:
+    hits = misses = 0
+    for d in dispatchers:
+        stats = d.stats
+        hits += sum(stats.cache_hits.values())
+        misses += sum(stats.cache_misses.values())
+    return hits, misses
+
+
+def kernels_cached(which: str = "pipeline") -> bool | None:
+    """Whether Numba's cache holds compiled code for fastmem's kernels (a hint).
+
+    ``which="pipeline"`` (default) looks at the largest kernels of a default
+    solve, so that it turns True after the first ``fastmem run``; ``"all"``
+    at every kernel, including those a default solve never uses (mesh
+    refinement, nested dissection).  Looks for the cache index file of each
+    kernel (where Numba would write it, including its fallback cache
+    directory).  Returns None when that cannot be determined (a Numba version
+    with another cache layout).  A cached kernel whose source changed since is
+    still recompiled: this is a hint for progress messages, not a promise.
+    """
+    if which not in ("pipeline", "all"):
+        raise ValueError(f"which must be 'pipeline' or 'all', got {which!r}")
+
+    try:
+        if which == "all":
+            kernels = [d for d in _dispatchers() if d._can_compile]
+        else:
+            kernels = [
+                flux._reconstruct_chunk,
+                assembly._stiffness_csr_range,
+                topology._number_edges,
+            ]
+        return all(_cached(d) for d in kernels)
+    except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
+        return None
+
+
+def _cached(dispatcher) -> bool:
+    return os.path.exists(dispatcher._cache._cache_file._index_path)
+
+
+def _cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+#: Python code the helper process runs (a module run with -m would be imported twice)
+#: (the coefficient pass first: meanwhile the caller compiles the two largest
+#: callees of the patch kernel, which the helper then finds in the cache; should
+#: the patch kernel's typing reach them first, it waits for them, up to 5 s after
+#: the helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
+#: imports ``fastmem.kernels`` (numpy and numba only) without running
+#: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
+#: the helper does not need; argv: the folders of ``fastmem`` and of its kernels.
+_HELPER_CODE = """
+import importlib.util, sys, types
+package = types.ModuleType("fastmem")
+package.__path__ = [sys.argv[1]]
+sys.modules["fastmem"] = package
+spec = importlib.util.spec_from_file_location(
+    "fastmem.kernels", sys.argv[2] + "/__init__.py", submodule_search_locations=[sys.argv[2]]
+)
+package.kernels = sys.modules["fastmem.kernels"] = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(package.kernels)
+import os
+import time
+
+from fastmem.kernels import flux
+
+#: when the helper stops waiting for the caller's solvers (one deadline for both)
+deadline = time.monotonic() + 5.0
+
+
+def after_the_caller(dispatcher):
+    # The caller compiles these callees of the patch kernel into the cache meanwhile:
+    # when the patch kernel's typing reaches one before the caller has saved it (a
+    # loaded machine), wait for the caller's save instead of compiling it twice.
+    cache_file = dispatcher._cache._cache_file
+    compile_ = dispatcher.compile
+
+    def saved():
+        if not os.path.exists(cache_file._index_path):
+            return False
+        names = list(cache_file._load_index().values())
+        return bool(names) and all(os.path.exists(cache_file._data_path(n)) for n in names)
+
+    def compile(sig):
+        while time.monotonic() < deadline and not saved():
+            time.sleep(0.01)
+        return compile_(sig)
+
+    dispatcher.compile = compile
+
+
+try:
+    for dispatcher in (flux._refine_balance, flux._reduced_solve):
+        after_the_caller(dispatcher)
+except Exception:  # another Numba cache layout: compile them here if they are not there
+    pass
+flux.precompile("coefficients")
+flux.precompile("patches")
+import gc
+gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see fastmem.cli.main)
+"""
+
+
+_helper = None
+
+
+def start_compile_helper() -> bool:
+    """Start compiling the flux patch kernel in a helper process, if that will help.
+
+    Only with an empty cache for that kernel, two or more usable CPUs and
+    ``FASTMEM_COMPILE_HELPER`` not set to 0.  :func:`warm_up` calls it; a caller
+    that has other work to do first (``fastmem run`` builds its mesh) calls it
+    earlier so that the helper starts sooner.  Returns whether a helper runs.
+    """
+    global _helper
+    if _helper is not None and _helper.poll() is None:
+        return True
+    _helper = None
+    if os.environ.get("FASTMEM_COMPILE_HELPER", "1").strip().lower() in ("0", "no", "false", "off"):
+        return False
+
+    try:
+        if _cpus() < 2 or _cached(flux._reconstruct_chunk):
+            return False
+
+        folders = [os.path.dirname(os.path.abspath(f)) for f in (__file__, kernels.__file__)]
+        _helper = subprocess.Popen(
+            [sys.executable, "-c", _HELPER_CODE, *folders],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+    except Exception as err:  # noqa: BLE001 - no helper: compile here, as without it
+        logger.debug("no compile helper process: %s", err)
+        return False
+    # the patch kernel's two largest callees, here, while the helper imports
+    # fastmem and compiles the coefficient pass: it then loads them from the cache
+    flux.precompile("solvers")
+    return True
+
+
+def _take_helper():
+    global _helper
+    proc, _helper = _helper, None
+    return proc
+
+
+#: seconds the tiny solve waits for the helper before compiling the kernel itself
+HELPER_TIMEOUT = 300.0
+
+
+def _join_helper(proc) -> bool:
+    """Wait for the helper; True when it finished cleanly (its kernel is in the cache)."""
+    try:
+        _, err = proc.communicate(timeout=HELPER_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        logger.debug("compile helper killed after %.0f s", HELPER_TIMEOUT)
+        return False
+    if proc.returncode != 0:
+        tail = err.decode(errors="replace").strip().splitlines()[-3:]
+        logger.debug("compile helper failed (exit %s): %s", proc.returncode, " | ".join(tail))
+        return False
+    return True
+
+
+def _precompile_rows() -> None:
+    """Compile Newton-min's history-row kernel with the argument types of a solve.
+
+    Read-only mesh indices: otherwise it compiles after the wait for the helper
+    (0.1 s more wall).
+    """
+
+
+    z = np.zeros(0)
+    interior = np.zeros(0, dtype=np.int64)
+    interior.setflags(write=False)
+    rows.row_measures(z, z, z, interior, np.zeros(0, dtype=np.bool_), 1.0)
+
+
+def _precompile_cycles() -> None:
+    """Compile the multigrid cycle's kernels (hybrid sweep, threaded products)."""
+
+    precompile()
+
+
+def _precompile_locate() -> None:
+
+    coarse = Mesh.square(2)
+    locate(coarse, coarse.vertices)
+
+
+def warm_up(
+    method: str = "inexact",
+    *,
+    estimate: bool = True,
+    adaptive: bool = False,
+    unstructured: bool = False,
+    general: bool = False,
+) -> WarmUp:
+    """Compile or load every kernel a solve of this kind needs, on a tiny problem.
+
+    Parameters
+    ----------
+    method : {"inexact", "exact-amg", "exact"}
+        The solver method of the solve to come.
+    estimate : bool
+        Whether the solve to come computes the error bound.
+    adaptive : bool
+        Whether it solves to a tolerance (mesh refinement kernels).
+    unstructured : bool
+        Whether its mesh has no coarser version (auxiliary coarse meshes).
+    general : bool
+        Whether it takes the general linear-step path (per-triangle mu).
+
+    Returns
+    -------
+    WarmUp
+        Seconds spent and the number of kernel specialisations compiled and
+        loaded from the cache.
+
+    Notes
+    -----
+    A 32 x 32 square (1089 vertices) is the smallest structured mesh whose
+    nested iteration reaches every kernel of the default pipeline.  Kernels of
+    callable loads are compiled by the scene that uses them, on first use.
+    """
+
+
+    if method not in METHODS:
+
+        raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+
+    dispatchers = _dispatchers()
+    hits0, misses0 = _counts(dispatchers)
+    t0 = time.perf_counter()
+    uses_flux = method == "inexact" or estimate or adaptive
+    helper = _take_helper() if uses_flux and start_compile_helper() else None
+    if helper is not None:
+        _kflux.compile_gate = lambda: _join_helper(helper)
+        # meanwhile: the flux kernels the helper does not compile and, for a mesh
+        # without a coarser version, the point location of its auxiliary coarse
+        # mesh (otherwise compiled after the wait; nested structured meshes need none)
+        _kflux.precompile("estimators")
+        _precompile_rows()
+        if unstructured:
+            _precompile_locate()
+    _precompile_cycles()  # (with or without a helper: the tiny solve does not reach them)
+    if adaptive:
+        mesh = Mesh.lshape(4)
+    elif unstructured:
+        base = Mesh.square(32)
+        rng = np.random.default_rng(0)
+        vertices = base.vertices.copy()
+        inner = ~base.boundary_vertex_mask
+        vertices[inner] += rng.uniform(-0.2, 0.2, size=(int(inner.sum()), 2)) / 16
+        mesh = Mesh(vertices, base.triangles)
+    else:
+        mesh = Mesh.square(32)
+    if general:
+        x = mesh.vertices[mesh.triangles, 0].mean(axis=1)
+        mu1 = np.where(x < 0, 1.0, 2.0)
+    else:
+        mu1 = 1.0
+    scene = Scene(mesh, mu=(mu1, 1.0), f=(-1.0, 1.0), g=0.1)
+    keywords = {"tol": 1e-9, "max_levels": 3} if adaptive else {}
+    log = logging.getLogger("fastmem")
+    level = log.level
+    log.setLevel(logging.ERROR)  # "stopped before the tolerance" and the like: expected here
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            solve(scene, method=method, estimate=estimate or adaptive, **keywords)
+    finally:
+        log.setLevel(level)
+        if helper is not None:
+            _kflux.compile_gate = None
+            if helper.poll() is None:  # the solve never reached the flux kernel
+                _join_helper(helper)
+    seconds = time.perf_counter() - t0
+    hits1, misses1 = _counts(dispatchers)
+    return WarmUp(
+        seconds=seconds,
+        compiled=misses1 - misses0,
+        loaded=hits1 - hits0,
+        helper=helper is not None,
+    )

@@ -1,0 +1,125 @@
+"""The landing rule of the adaptive loop (fastmem.adapt.loop, docs/method.md §9).
+
+When the target is predicted within reach of the next refinement, the loop
+marks (largest indicators first) only as many triangles as the predicted
+vertex count needs, instead of Dörfler's whole set.
+"""
+
+import numpy as np
+import pytest
+from fastmem.kernels import nvb
+
+import fastmem as fm
+import fastmem.adapt.loop as afem
+from fastmem.mesh.refine import refinement_edges, refine_marked
+
+
+def _default(mesh):
+    return fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+
+
+def _adapted_mesh():
+    """An NVB mesh with refinement history (mixed levels), about 2-3k triangles."""
+    mesh = fm.Mesh.lshape(16)
+    rng = np.random.default_rng(3)
+    for _ in range(3):
+        marked = rng.random(mesh.n_triangles) < 0.2
+        mesh, _ = refine_marked(mesh, marked)
+    return mesh
+
+
+def _closure_count(mesh, marked):
+    ref = refinement_edges(mesh, None)
+    return int(np.count_nonzero(nvb.closure(mesh.triangle_edges, mesh.edge_triangles, ref, marked)))
+
+
+@pytest.mark.parametrize("fraction", [0.02, 0.1, 0.3])
+def test_marks_the_largest_indicators_for_a_vertex_count(fraction):
+    mesh = _adapted_mesh()
+    rng = np.random.default_rng(7)
+    eta2 = rng.lognormal(size=mesh.n_triangles)
+    dorfler = afem.dorfler_mark(eta2, 0.5)
+    k0, n0 = int(dorfler.sum()), _closure_count(mesh, dorfler)
+    want = fraction * mesh.n_vertices
+    marked = afem._mark_vertices(mesh, eta2, want, k0, n0)
+    # a top set: every marked indicator at least every unmarked one
+    assert marked.any()
+    assert not marked.all()
+    assert eta2[marked].min() >= eta2[~marked].max()
+    # its refinement adds about `want` vertices (the closure of refine_marked)
+    fine, transfer = refine_marked(mesh, marked)
+    assert transfer.n_new_vertices == _closure_count(mesh, marked)
+    assert abs(transfer.n_new_vertices - want) <= max(0.02 * want, 3), (
+        transfer.n_new_vertices,
+        want,
+    )
+
+
+def test_mesh_part_drops_the_solver_terms():
+    totals = {"eta_disc": 0.05, "c": 1e-4, "a": 0.07, "eta_nc": 0.01}
+    a0 = 0.05 - 0.01
+    x = afem.mesh_part(totals)
+    assert x * x == pytest.approx(a0 * x + 1e-4)  # root of x^2 = a0 x + c
+    assert a0 < x < 0.05
+    # homogeneous of degree one: all local terms scaled by s (c by s^2)
+    scaled = afem.mesh_part({"eta_disc": 0.5 * 0.05, "c": 0.25 * 1e-4})
+    assert scaled == pytest.approx(0.5 * x)
+
+
+def test_landing_vertices_rule(monkeypatch):
+    row = {"n_vertices": 10_000, "eta_mesh": 2.0e-2}
+    n_dorfler = 13_500
+    # out of reach of Dörfler's next mesh: Dörfler
+    assert afem._landing_vertices(row, 1.0e-2, n_dorfler) is None
+    target = 2.0e-2 / 1.1
+    expected = 10_000 * (1.1 / afem.LANDING_AIM) ** 2
+    assert expected < n_dorfler
+    # within reach: the predicted count for eta_mesh = LANDING_AIM * target
+    assert afem._landing_vertices(row, target, n_dorfler) == pytest.approx(expected)
+    # reach beyond Dörfler's mesh only up to LANDING_MAX_GROWTH
+    far = 2.0e-2 / 1.3
+    assert afem._landing_vertices(row, far, n_dorfler) is None
+    monkeypatch.setattr(afem, "LANDING_MAX_GROWTH", 2.0)
+    assert afem._landing_vertices(row, far, n_dorfler) == pytest.approx(
+        10_000 * (1.3 / afem.LANDING_AIM) ** 2
+    )
+    # landing off
+    monkeypatch.setattr(afem, "LANDING_MAX_GROWTH", None)
+    assert afem._landing_vertices(row, target, n_dorfler) is None
+
+
+def test_landing_does_not_overshoot_and_still_converges(monkeypatch):
+    """Small L-shape: the landed mesh has the aimed vertex count, fewer than Dörfler's, and
+    the loop still stops with a fresh bound below tol."""
+    scene = _default(fm.Mesh.lshape(8))
+    tols = [6e-3, 4.5e-3, 3.5e-3]
+    landed = 0
+    for tol in tols:
+        monkeypatch.setattr(afem, "LANDING_MAX_GROWTH", None)
+        plain = fm.solve(scene, tol=tol)
+        monkeypatch.undo()
+        r = fm.solve(scene, tol=tol)
+        assert r.converged
+        assert r.eta <= tol
+        est = fm.estimate(_default(r.mesh), r.u1, r.u2, r.lam)
+        assert est.eta == pytest.approx(r.eta, rel=1e-10)  # fresh bound of the returned triple
+        table, info = r.adaptivity, r.parameters["adaptivity"]
+        for land in info["landings"]:
+            landed += 1
+            k = land["level"]
+            # the mesh after a landing has the aimed count (closure within _LANDING_TOL)
+            assert land["vertices"] == table["n_vertices"][k + 1]
+            new, aimed_new = (
+                land["vertices"] - table["n_vertices"][k],
+                land["aim"] - table["n_vertices"][k],
+            )
+            assert abs(new - aimed_new) <= max(2 * afem._LANDING_TOL * aimed_new, 3), land
+        # the same meshes as Dörfler's up to the first landing; then no more vertices
+        first = info["landings"][0]["level"] if info["landings"] else len(table["level"])
+        np.testing.assert_array_equal(
+            table["n_vertices"][: first + 1], plain.adaptivity["n_vertices"][: first + 1]
+        )
+        if info["landings"]:
+            assert r.mesh.n_vertices <= plain.mesh.n_vertices
+            assert len(table["level"]) <= len(plain.adaptivity["level"]) + 1
+    assert landed >= 1

@@ -1,0 +1,184 @@
+"""First-run compilation: the helper process of :func:`fastmem.warm_up`, and the
+kernels that run without Numba's parallel compiler.
+
+* :func:`fastmem.kernels.flux.precompile` must compile exactly the
+  specialisations a real reconstruction uses (otherwise the helper's work is
+  wasted and the kernel compiles twice);
+* a cold ``fastmem run`` with the helper (empty Numba cache, fresh process)
+  gives the same bound as the in-process solve, and says the helper was used;
+* a helper that fails leaves the warm-up working (the kernel compiles in the
+  calling process);
+* the chunked kernels give the same bits for any thread count and chunk size.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import threading
+
+import numba
+import numpy as np
+import pytest
+from fastmem.kernels import pool as _par
+from fastmem.kernels import flux as kf
+
+import fastmem as fm
+from fastmem.estimators import bound, flux
+from fastmem.cli import warmup
+
+
+def test_precompile_compiles_the_pipeline_specialisations():
+    """precompile() and a real reconstruction + flux estimators share one specialisation."""
+    for part in ("solvers", "coefficients", "estimators", "patches"):
+        kf.precompile(part)
+    x = fm.Mesh.square(6)
+    mu1 = np.where(x.vertices[x.triangles, 0].mean(axis=1) < 0.5, 1.0, 1e4)
+    for mu in ((1.0, 1.0), (mu1, 2.0)):
+        scene = fm.Scene(x, mu=mu, f=(-1.0, 1.0), g=0.1)
+        res = fm.solve(scene)  # the pipeline's own calls (inexact checks, the bound)
+        # and the public functions on a Result's (read-only) arrays
+        fluxes = flux.reconstruct(scene, res.u1, res.u2, res.lam)
+        bound.flux_terms(scene, res.u1, res.u2, fluxes)
+    kernels = (
+        kf._reconstruct_chunk,
+        kf._reduced_solve,
+        kf._refine_balance,
+        kf._coefficients_chunk,
+        kf._estimators_chunk,
+    )
+    # at most one: a kernel loaded from the cache as a callee has none in-process
+    counts = {d.__name__: len(d.signatures) for d in kernels}
+    assert all(c <= 1 for c in counts.values()), counts
+    assert counts["_reconstruct_chunk"] == counts["_estimators_chunk"] == 1, counts
+
+
+def test_precompile_refuses_an_unknown_part():
+    with pytest.raises(ValueError, match="'everything'"):
+        kf.precompile("everything")
+
+
+def _eta(text: str) -> float:
+    m = re.search(r"error bound eta\s+([0-9.eE+-]+)", text)
+    assert m, text
+    return float(m.group(1))
+
+
+def test_cold_run_with_helper_matches_in_process_solve(tmp_path):
+    """Empty cache, fresh process: the helper compiles the flux kernel; same eta."""
+    env = {
+        **os.environ,
+        "NUMBA_CACHE_DIR": str(tmp_path / "numba"),
+        "FASTMEM_COMPILE_HELPER": "1",
+    }
+    cmd = [sys.executable, "-m", "fastmem", "run", "--n", "16", "--no-save"]
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "compiling Numba kernels" in res.stdout, res.stdout  # kernels_cached() False
+    if warmup._cpus() >= 2:
+        assert "in a helper process" in res.stdout, res.stdout
+    expected = fm.solve(fm.Scene(fm.Mesh.square(16), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+    assert _eta(res.stdout) == pytest.approx(expected.eta, rel=1e-4)  # printed with 5 digits
+    # the helper wrote the flux kernel where the second run finds it
+    again = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600, check=False)
+    assert again.returncode == 0, again.stderr[-2000:]
+    assert "loading compiled kernels" in again.stdout, again.stdout
+    assert "helper" not in again.stdout
+    assert _eta(again.stdout) == _eta(res.stdout)
+
+
+def test_failing_helper_falls_back_to_compiling_here(monkeypatch):
+    """A helper that exits with an error: the warm-up still completes, no helper left."""
+    monkeypatch.setattr(warmup, "_HELPER_CODE", "raise SystemExit(3)")
+    monkeypatch.setattr(warmup, "_cached", lambda d: False)
+    monkeypatch.setattr(warmup, "_cpus", lambda: 2)
+    monkeypatch.setenv("FASTMEM_COMPILE_HELPER", "1")
+    done = warmup.warm_up("inexact")
+    assert done.helper
+    assert kf.compile_gate is None
+    assert warmup._helper is None
+
+
+def test_kernels_cached_refuses_an_unknown_scope():
+    with pytest.raises(ValueError, match="'some'"):
+        warmup.kernels_cached("some")
+    assert warmup.kernels_cached("all") in (True, False)
+
+
+def test_helper_switched_off(monkeypatch):
+    monkeypatch.setattr(warmup, "_cached", lambda d: False)
+    monkeypatch.setattr(warmup, "_cpus", lambda: 2)
+    monkeypatch.setenv("FASTMEM_COMPILE_HELPER", "0")
+    assert warmup.start_compile_helper() is False
+    assert not warmup.warm_up("inexact").helper
+
+
+@pytest.mark.parametrize(
+    ("n", "threads", "grain"), [(0, 2, 1), (5, 2, 1), (10, 3, 4), (4096, 2, 4096)]
+)
+def test_ranges_cover_in_order(n, threads, grain):
+    chunks = _par.ranges(n, threads, grain)
+    assert chunks[0][0] == 0
+    assert chunks[-1][1] == n
+    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:], strict=False))
+    assert len(chunks) <= max(1, threads)
+    assert all(hi - lo >= min(grain, n) for lo, hi in chunks)
+
+
+def test_run_ranges_raises_a_chunk_error():
+    def fn(lo, hi):
+        if lo > 0:
+            raise RuntimeError(f"chunk {lo}")
+
+    with pytest.raises(RuntimeError, match="chunk"):
+        _par.run_ranges(fn, [(0, 1), (1, 2), (2, 3)])
+
+
+def test_flux_bits_independent_of_threads_and_chunks(monkeypatch):
+    """Same coefficients with 1 thread, all threads, and chunks of one patch / triangle."""
+    mesh = fm.Mesh.square(12)
+    scene = fm.Scene(mesh, mu=(1.0, 3.0), f=(-1.0, 1.0), g=0.1)
+    res = fm.solve(scene, method="exact")
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = flux.reconstruct(scene, res.u1, res.u2, res.lam).coef
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+        many = flux.reconstruct(scene, res.u1, res.u2, res.lam).coef
+        monkeypatch.setattr(kf, "PATCH_GRAIN", 1)
+        monkeypatch.setattr(kf, "TRIANGLE_GRAIN", 1)
+        tiny = flux.reconstruct(scene, res.u1, res.u2, res.lam).coef
+        monkeypatch.setattr(kf, "PATCH_PIECES", 1)  # one fixed chunk per thread
+        fixed = flux.reconstruct(scene, res.u1, res.u2, res.lam).coef
+    finally:
+        numba.set_num_threads(old)
+    assert np.array_equal(one, many)
+    assert np.array_equal(one, tiny)
+    assert np.array_equal(one, fixed)
+
+
+@pytest.mark.parametrize(("pieces", "threads"), [(0, 2), (1, 2), (7, 1), (7, 3), (40, 2)])
+def test_run_pieces_calls_every_piece_once(pieces, threads):
+    calls, lock = [], threading.Lock()
+    seen_threads = set()
+
+    def fn(lo, hi):
+        with lock:
+            calls.append((lo, hi))
+            seen_threads.add(threading.get_ident())
+
+    chunks = [(k, k + 1) for k in range(pieces)]
+    _par.run_pieces(fn, chunks, threads)
+    assert sorted(calls) == chunks
+    assert len(seen_threads) <= max(1, threads)
+
+
+def test_run_pieces_raises_a_piece_error():
+    def fn(lo, hi):
+        if lo == 5:
+            raise RuntimeError(f"piece {lo}")
+
+    with pytest.raises(RuntimeError, match="piece 5"):
+        _par.run_pieces(fn, [(k, k + 1) for k in range(8)], 2)

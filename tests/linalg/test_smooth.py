@@ -1,0 +1,200 @@
+"""Threaded multigrid cycles: hybrid Gauss-Seidel and threaded CSR products (issue 15).
+
+:class:`fastmem.linalg.amg.HybridGaussSeidel` sweeps fixed row blocks in parallel
+(Gauss-Seidel inside a block, Jacobi across blocks); :class:`fastmem.linalg.sparse.ThreadedCSR`
+computes ``A @ x`` over row chunks.  Checked against pyamg's and scipy's serial
+kernels, for independence of the thread count, for the symmetry of the cycle
+(CG needs an SPD preconditioner), and for the convergence test that keeps
+pyamg's sweep where the hybrid one could fail.
+"""
+
+import numba
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from pyamg.relaxation.relaxation import gauss_seidel
+
+import fastmem as fm
+from fastmem.linalg import amg
+from fastmem.linalg.amg import (
+    AMG_DEFAULTS,
+    HybridGaussSeidel,
+    amg_preconditioner,
+)
+from fastmem.linalg.sparse import ThreadedCSR, threaded
+from fastmem.fem.assembly import assemble_stiffness
+from fastmem.solver.steps import gap_matrix
+
+
+def _laplacian(n):
+    mesh = fm.Mesh.square(n)
+    ii = mesh.interior_vertices
+    a = assemble_stiffness(mesh)[ii][:, ii].tocsr()
+    a.sort_indices()
+    x, y = mesh.vertices[ii].T
+    return a, x, y
+
+
+@pytest.fixture
+def threads():
+    """Restore the Numba thread count a test changes."""
+    before = numba.get_num_threads()
+    yield
+    numba.set_num_threads(before)
+
+
+def test_one_block_is_pyamgs_symmetric_sweep():
+    a, _, _ = _laplacian(48)
+    b = np.random.default_rng(0).standard_normal(a.shape[0])
+    x0 = np.random.default_rng(1).standard_normal(a.shape[0])
+    ours, ref = x0.copy(), x0.copy()
+    HybridGaussSeidel(1)(a, ours, b)
+    gauss_seidel(a, ref, b, iterations=1, sweep="symmetric")
+    np.testing.assert_array_equal(ours, ref)
+
+
+def test_hybrid_sweep_is_the_block_formula():
+    """Forward sweep = (D + L_B)^-1 (b - (U + L - L_B) x_old), checked with a dense solve."""
+    a, _, _ = _laplacian(20)
+    n, nb = a.shape[0], 3
+    edges = [n * k // nb for k in range(nb + 1)]
+    rng = np.random.default_rng(2)
+    b, x0 = rng.standard_normal(n), rng.standard_normal(n)
+    dense = a.toarray()
+    block = np.searchsorted(edges, np.arange(n), side="right") - 1
+    same = block[:, None] == block[None, :]
+    lower_b = np.tril(dense, -1) * same
+    m = np.diag(np.diag(dense)) + lower_b
+    forward = np.linalg.solve(m, b - (dense - m) @ x0)
+    upper_b = np.triu(dense, 1) * same
+    m2 = np.diag(np.diag(dense)) + upper_b
+    expected = np.linalg.solve(m2, b - (dense - m2) @ forward)
+    got = x0.copy()
+    HybridGaussSeidel(nb)(a, got, b)
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_cycle_does_not_depend_on_the_thread_count(threads):
+    a, x, y = _laplacian(200)  # 39,601 rows: the finest level is swept by blocks
+    g = gap_matrix(a, x * x + 0.7 * y * y < 0.3)
+    pre = amg_preconditioner(g, dict(AMG_DEFAULTS))
+    assert isinstance(pre.ml.levels[0].presmoother, HybridGaussSeidel)
+    r = np.random.default_rng(3).standard_normal(a.shape[0])
+    numba.set_num_threads(1)
+    one = pre(r)
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    many = pre(r)
+    np.testing.assert_array_equal(one, many)
+
+
+def test_hybrid_cycle_is_a_symmetric_positive_definite_preconditioner():
+    a, x, y = _laplacian(200)
+    g = gap_matrix(a, x * x + 0.7 * y * y < 0.3)
+    pre = amg_preconditioner(g, dict(AMG_DEFAULTS))
+    assert isinstance(pre.ml.levels[0].presmoother, HybridGaussSeidel)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        u, v = rng.standard_normal((2, a.shape[0]))
+        uv, vu = u @ pre(v), v @ pre(u)
+        assert abs(uv - vu) <= 1e-12 * max(abs(uv), np.linalg.norm(u) * np.linalg.norm(pre(u)))
+        assert u @ pre(u) > 0.0
+
+
+def test_hybrid_smoother_keeps_cg_iterations():
+    a, x, y = _laplacian(200)
+    g = gap_matrix(a, x * x + 0.7 * y * y < 0.3)
+    b = np.random.default_rng(5).standard_normal(a.shape[0])
+    counts = {}
+    for rows in (amg.HYBRID_BLOCK_ROWS, 10**12):
+        old = amg.HYBRID_BLOCK_ROWS
+        amg.HYBRID_BLOCK_ROWS = rows
+        try:
+            pre = amg_preconditioner(g, dict(AMG_DEFAULTS))
+        finally:
+            amg.HYBRID_BLOCK_ROWS = old
+        counts[rows] = amg.PCG(g, b, np.zeros_like(b), pre).solve(1e-8, 300)
+    hybrid, plain = counts[amg.HYBRID_BLOCK_ROWS], counts[10**12]
+    assert hybrid <= plain + 1
+
+
+def test_not_dominant_across_blocks_keeps_pyamgs_sweep():
+    """Strong couplings between two blocks: the hybrid sweep is not installed there."""
+    a, _, _ = _laplacian(200)
+    n = a.shape[0]
+    i, j, k = 10, n - 10, n - 20  # row i in the first block, j and k in the last
+    # + E on (i, j, k), E = [[2, 3, 3], [3, 20, 0], [3, 0, 20]] positive definite: still SPD,
+    # but row i has diagonal 4 + 2 = 6 against 3 + 3 = 6 outside its block
+    e = sp.coo_matrix(
+        ([2.0, 3.0, 3.0, 3.0, 20.0, 3.0, 20.0], ([i, i, i, j, j, k, k], [i, j, k, i, j, i, k])),
+        shape=a.shape,
+    )
+    bad = (a + e).tocsr()
+    assert np.all(np.linalg.eigvalsh(np.array([[2, 3, 3], [3, 20, 0], [3, 0, 20]])) > 0)
+    assert not amg._hybrid_converges(bad, amg.hybrid_blocks(n))
+    assert amg._hybrid_converges(a, amg.hybrid_blocks(n))
+    pre = amg_preconditioner(bad, dict(AMG_DEFAULTS))
+    assert not isinstance(pre.ml.levels[0].presmoother, HybridGaussSeidel)
+    good = amg_preconditioner(a, dict(AMG_DEFAULTS))
+    assert isinstance(good.ml.levels[0].presmoother, HybridGaussSeidel)
+
+
+def test_threaded_products_equal_scipys():
+    rng = np.random.default_rng(6)
+    n, nnz = 50_000, 400_000
+    rows, cols = rng.integers(0, n, (2, nnz))
+    m = sp.csr_matrix((rng.standard_normal(nnz), (rows, cols)), shape=(n, n))
+    t = threaded(m)
+    assert isinstance(t, ThreadedCSR)
+    x = rng.standard_normal(n)
+    np.testing.assert_array_equal(t @ x, m @ x)
+    frozen = x.copy()
+    frozen.setflags(write=False)
+    np.testing.assert_array_equal(t @ frozen, m @ x)
+    np.testing.assert_array_equal(t @ x.reshape(-1, 1), m @ x.reshape(-1, 1))  # 2-D: scipy's
+    np.testing.assert_array_equal(t.dot(x), m.dot(x))
+    ints = np.arange(n)
+    np.testing.assert_array_equal(t @ ints, m @ ints)  # not float64: scipy's path
+    assert not isinstance(threaded(m[:100]), ThreadedCSR)  # small: left to scipy
+
+
+@pytest.mark.parametrize("cycle", ["V", "W", "F"])
+def test_direct_cycle_equals_pyamgs_preconditioner(cycle):
+    """The cycle called directly (no solve loop) gives pyamg's preconditioner bit for bit."""
+    a, x, y = _laplacian(64)
+    pre = amg_preconditioner(gap_matrix(a, x * x + y * y < 0.3), {"cycle": cycle})
+    assert pre._cycle is not None
+    r = np.random.default_rng(8).standard_normal(a.shape[0])
+    np.testing.assert_array_equal(pre(r), pre._op.matvec(r))
+
+
+def test_concurrent_cycles_give_the_serial_result():
+    """Two threads applying one hierarchy at once (the sweep's buffer is not shared)."""
+    import concurrent.futures
+
+    a, x, y = _laplacian(200)
+    pre = amg_preconditioner(gap_matrix(a, x * x + 0.7 * y * y < 0.3), dict(AMG_DEFAULTS))
+    assert isinstance(pre.ml.levels[0].presmoother, HybridGaussSeidel)
+    rs = np.random.default_rng(9).standard_normal((6, a.shape[0]))
+    serial = [pre(r) for r in rs]
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        for _ in range(3):
+            got = list(pool.map(pre, rs))
+            for z, ref in zip(got, serial, strict=True):
+                np.testing.assert_array_equal(z, ref)
+
+
+def test_smoothers_with_setup_data_are_not_updated():
+    """Schwarz keeps a copy of the setup's matrix: no Galerkin update, a valid solve."""
+    opts = {"presmoother": ("schwarz", {"sweep": "symmetric"})}
+    opts["postsmoother"] = opts["presmoother"]
+    a, x, y = _laplacian(32)
+    pre = amg_preconditioner(gap_matrix(a, x * x < 0.3), dict(opts))
+    assert not pre.can_update
+    with pytest.raises(ValueError, match="setup"):
+        pre.update(a, np.arange(1), sp.csr_matrix((1, 1)))
+    scene = fm.Manufactured().scene(fm.Mesh.square(64))
+    res = fm.solve(scene, method="exact-amg", path="decoupled", amg_options=opts)
+    assert sum(lv.get("amg_updates", 0) for lv in res.parameters["solver"]["levels"]) == 0
+    ref = fm.solve(fm.Manufactured().scene(fm.Mesh.square(64)), method="exact")
+    assert np.abs(res.u1 - ref.u1).max() <= 1e-9 * np.abs(ref.u1).max()
+    assert np.array_equal(res.active, ref.active)

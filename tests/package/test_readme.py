@@ -1,0 +1,144 @@
+"""The README and docs as a new user meets them: every Python block runs as pasted, every
+``fastmem`` command of the README runs, and every reference points to a file that ships."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+README = ROOT / "README.md"
+DOCS = ROOT / "docs"
+
+if not README.is_file():  # pragma: no cover - tests run from an installed package only
+    pytest.skip("README.md not found next to the tests", allow_module_level=True)
+
+#: A fenced block preceded by this comment is not run (it needs files the reader has).
+NOT_RUNNABLE = "<!-- not runnable as pasted -->"
+
+
+def _blocks(path: Path, language: str) -> list[tuple[int, str]]:
+    """(line number, code) of every fenced block of ``language`` that is meant to run."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    out, i = [], 0
+    while i < len(lines):
+        if lines[i].strip() == f"```{language}":
+            start = i + 1
+            j = start
+            while lines[j].strip() != "```":
+                j += 1
+            previous = lines[i - 1].strip() if i else ""
+            if previous != NOT_RUNNABLE:
+                out.append((start + 1, "\n".join(lines[start:j]) + "\n"))
+            i = j
+        i += 1
+    return out
+
+
+PYTHON_BLOCKS = _blocks(README, "python")
+
+
+def test_readme_has_python_blocks_and_few_exceptions():
+    assert len(PYTHON_BLOCKS) >= 2
+    assert README.read_text(encoding="utf-8").count(NOT_RUNNABLE) <= 2
+
+
+@pytest.mark.parametrize(
+    ("line", "code"), PYTHON_BLOCKS, ids=[f"line{n}" for n, _ in PYTHON_BLOCKS]
+)
+def test_readme_python_block_runs_as_pasted(line, code, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, f"README.md:{line}", "exec"), {"__name__": "__readme__"})
+    capsys.readouterr()
+
+
+def _cli_commands() -> list[list[str]]:
+    commands = []
+    for _, code in _blocks(README, "bash"):
+        for raw in code.splitlines():
+            words = shlex.split(raw, comments=True)
+            if words[:1] == ["fastmem"]:
+                commands.append(words[1:])
+    return commands
+
+
+def test_readme_cli_commands_run_in_order(tmp_path, monkeypatch, capsys):
+    """Every ``fastmem ...`` line of the README's shell blocks, in order, in one folder."""
+    from fastmem.cli.main import main
+
+    commands = _cli_commands()
+    assert len(commands) >= 5
+    monkeypatch.chdir(tmp_path)
+    has_plot = importlib.util.find_spec("matplotlib") is not None
+    has_dask = all(importlib.util.find_spec(m) for m in ("dask", "distributed", "pandas"))
+    ran = 0
+    for argv in commands:
+        if argv[0] == "plot" and not has_plot:
+            continue
+        if argv[0] == "sweep" and not has_dask:
+            continue
+        if argv[0] == "sweep" and not (tmp_path / argv[-1]).exists():
+            continue  # a study file the reader writes; docs/sweeps.md has one to run
+        if argv[0] == "plot" and "--x" in argv and not (tmp_path / argv[1]).exists():
+            continue  # the plot of that study (tests/test_sweep.py runs one)
+        assert main(argv) == 0, argv
+        ran += 1
+    assert ran >= 5
+    assert "error:" not in capsys.readouterr().err
+
+
+_LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+
+
+@pytest.mark.parametrize("doc", [README, *sorted(DOCS.glob("*.md"))], ids=lambda p: p.name)
+def test_markdown_links_point_to_files_that_exist(doc):
+    for target in _LINK.findall(doc.read_text(encoding="utf-8")):
+        if "://" in target:
+            continue
+        assert (doc.parent / target).exists(), f"{doc.name} links to missing {target}"
+
+
+def test_no_reference_to_files_that_do_not_ship():
+    """Docstrings, help texts and docs cite docs/method.md, not the design notes."""
+    bad = re.compile(r"MATH\.md|ARCHITECTURE\.md|BENCHMARKS\.md|shared/design")
+    offenders = []
+    for folder in ("fastmem", "kernels", "bench", "docs", "examples"):
+        for path in (ROOT / folder).rglob("*"):
+            if path.suffix in (".py", ".md") and bad.search(path.read_text(encoding="utf-8")):
+                offenders.append(str(path.relative_to(ROOT)))
+    if bad.search(README.read_text(encoding="utf-8")):
+        offenders.append("README.md")
+    assert offenders == []
+
+
+def _run_options() -> set[str]:
+    from fastmem.cli.main import _build_parser
+
+    parser = _build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    options = set()
+    for name, command in sub.choices.items():
+        options.add(name)
+        for action in command._actions:
+            options.update(o for o in action.option_strings if o.startswith("--"))
+    return options - {"--help"}
+
+
+def test_cli_doc_covers_every_command_and_option():
+    text = (DOCS / "cli.md").read_text(encoding="utf-8")
+    missing = sorted(o for o in _run_options() if f"`{o}" not in text)
+    assert missing == []
+
+
+def test_archive_doc_covers_every_dataset():
+    from fastmem.io.schema import DATASETS, GROUPS
+
+    text = (DOCS / "archive.md").read_text(encoding="utf-8")
+    missing = [g for g in GROUPS if f"`/{g}`" not in text]
+    missing += [p for p in DATASETS if f"`{p.split('/')[-1]}`" not in text]
+    assert missing == []
