@@ -258,8 +258,8 @@ def poisson_unit(mesh, repeat=3, warmup=1, blas_threads=None):
     import numpy as np
     import pyamg
 
-    from fastmem.fem.assembly import assemble_stiffness
     from fastmem.config import blas_limits, get_threads
+    from fastmem.fem.assembly import assemble_stiffness
 
     ii = mesh.interior_vertices
     a_ii = assemble_stiffness(mesh)[ii][:, ii].tocsr()

@@ -143,8 +143,8 @@ def eta_projected(scene, r):
     correction, and the plain c and data oscillation.
     """
     from fastmem.estimators.bound import flux_terms
-    from fastmem.estimators.terms import combine, global_terms, local_terms
     from fastmem.estimators.flux import cross_point_correction, reconstruct
+    from fastmem.estimators.terms import combine, global_terms, local_terms
 
     lam = np.where(scene.mesh.boundary_vertex_mask, 0.0, r.lam)
     fl = reconstruct(scene, r.u1, r.u2, lam, r.r1, r.r2)
@@ -369,7 +369,8 @@ def run_glued(args):
     t0 = time.perf_counter()
     methods = ("exact", "inexact")
     section = {
-        "note": "eta: the bound with the glued contact load (fastmem.estimators.flux.glued_contact_load); "
+        "note": "eta: the bound with the glued contact load "
+        "(fastmem.estimators.flux.glued_contact_load); "
         "eta_projected: the same triple with the projected redistribution it replaced; "
         "flux_cost: fastmem.estimators.flux.reconstruct with redistribute='glued' (the bound's) vs "
         "redistribute=True, alternating, exclusive CPU lock",

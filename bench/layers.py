@@ -1,4 +1,6 @@
-"""Floppy membranes: the layer bound's effectivity and cost (issue 16, :mod:`fastmem.estimators.layers`).
+"""Floppy membranes: the layer bound's effectivity and cost (:mod:`fastmem.estimators.layers`).
+
+Issue 16.
 
 Four sections, written to ``bench/results/layers.json``:
 

@@ -104,11 +104,11 @@ class PhaseMemory:
 
 def _install(tracker):
     """Wrap the phase functions wherever a fastmem module holds them."""
-    import fastmem.linalg.amg
-    import fastmem.io.writer
-    import fastmem.fem.assembly
     import fastmem.estimators.bound
     import fastmem.estimators.flux
+    import fastmem.fem.assembly
+    import fastmem.io.writer
+    import fastmem.linalg.amg
     import fastmem.solver.levels
     import fastmem.solver.newton
 

@@ -58,8 +58,8 @@ def _difference(a, b):
 def kernels(n):
     """(name, work units, callable) of each parallel kernel on the mesh n x n."""
     import fastmem as fm
-    from fastmem.fem.assembly import assemble_stiffness
     from fastmem.estimators.flux import reconstruct
+    from fastmem.fem.assembly import assemble_stiffness
     from fastmem.solver.nested import interpolation_matrix
 
     mesh = fm.Mesh.square(n)

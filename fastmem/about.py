@@ -8,7 +8,7 @@ __all__ = ["package_version"]
 
 
 def package_version(default: str) -> str:
-    """The version of the installed distribution, or ``default`` in a source tree without one."""
+    """Return the installed distribution's version, or ``default`` in a bare source tree."""
     try:
         return importlib.metadata.version("fastmem")
     except importlib.metadata.PackageNotFoundError:  # pragma: no cover - a bare source tree

@@ -50,7 +50,6 @@ def set_threads(numba: int | None = None, blas: int | None = None) -> None:
     blas : int, optional
         Threads the BLAS pool (OpenBLAS, MKL) may use inside solver phases.
     """
-
     # validate everything before changing anything
     n = None if numba is None else check_count("numba threads", numba)
     b = None if blas is None else check_count("blas threads", blas)
@@ -66,14 +65,12 @@ def set_threads(numba: int | None = None, blas: int | None = None) -> None:
 
 def get_threads() -> dict:
     """Return the current thread settings as ``{"numba": int, "blas": int}``."""
-
     return {"numba": _nb.get_num_threads(), "blas": _settings["blas_threads"]}
 
 
 @contextlib.contextmanager
 def blas_limits(threads: int | None = None):
     """Limit the BLAS thread pool to ``threads`` (default: the configured value) in a block."""
-
     n = _settings["blas_threads"] if threads is None else check_count("blas threads", threads)
     with threadpool_limits(limits=n, user_api="blas"):
         yield

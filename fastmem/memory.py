@@ -194,7 +194,7 @@ def check_memory(
 
 
 def meminfo_bytes(key):
-    """A field of /proc/meminfo in bytes (``"MemAvailable"``, ...), or None where unknown."""
+    """Return a field of /proc/meminfo in bytes (``"MemAvailable"``, ...), or None."""
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:
             for line in fh:
@@ -206,7 +206,7 @@ def meminfo_bytes(key):
 
 
 def rss_bytes():
-    """Resident memory of this process in bytes (0 where unknown)."""
+    """Return the resident memory of this process in bytes (0 where unknown)."""
     try:
         with open("/proc/self/statm", encoding="ascii") as fh:
             return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")

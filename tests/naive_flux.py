@@ -34,8 +34,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 
-from fastmem.fem.residual import residuals
 from fastmem.fem.quadrature import triangle_rule
+from fastmem.fem.residual import residuals
 
 
 # --------------------------------------------------------------------- quadrature

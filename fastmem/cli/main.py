@@ -256,7 +256,6 @@ def _adapt_keywords(args) -> dict:
 
 def _outputs(args) -> list[tuple[Path, bool]]:
     """Check the files ``fastmem run`` will write, before any work: [(path, exists)]."""
-
     if args.no_save:
         if args.output:
             raise ParameterError("--no-save and -o/--output contradict each other: drop one")
@@ -285,7 +284,6 @@ def _write_outputs(result, outputs) -> None:
 
 def _warm_up(args, method, mesh, adaptive) -> float:
     """Compile or load the kernels first, saying so: the first run compiles for ~7 s."""
-
     cached = kernels_cached()
     if cached is False:
         text = "  compiling Numba kernels (first run only, about 6 s) ..."
@@ -495,7 +493,6 @@ def _cmd_export(args) -> int:
 
 def main(argv=None) -> int:
     """Entry point of the ``fastmem`` console script; returns the exit status."""
-
     args = _build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="fastmem: %(levelname)s: %(message)s")
     try:
@@ -520,7 +517,6 @@ def _skip_exit_collections() -> None:
     and flushed before (archives are written atomically, standard streams are
     flushed at exit regardless).
     """
-
     gc.freeze()
 
 

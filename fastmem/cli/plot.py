@@ -599,7 +599,6 @@ def run_plot(args) -> int:
         :class:`~fastmem.errors.FastmemError`, these are reported by
         ``fastmem.cli.main.main`` in one line with exit status 2.
     """
-
     try:
         _require_matplotlib()
     except ImportError as exc:

@@ -428,7 +428,6 @@ def plot_sweep(study, x, y, out=None, *, ax=None):
     ImportError
         Without matplotlib or pandas.
     """
-
     _require_matplotlib()
     table = load_sweep(study)
     _check_column(table, x, "--x", study, numeric=False)

@@ -78,8 +78,6 @@ class WarmUp:
 
 def _dispatchers() -> list:
     """Every Numba dispatcher defined at module level in :mod:`fastmem.kernels`."""
-
-
     found = []
     for info in pkgutil.iter_modules(kernels.__path__):
         module = importlib.import_module(f"{kernels.__name__}.{info.name}")
@@ -268,8 +266,6 @@ def _precompile_rows() -> None:
     Read-only mesh indices: otherwise it compiles after the wait for the helper
     (0.1 s more wall).
     """
-
-
     z = np.zeros(0)
     interior = np.zeros(0, dtype=np.int64)
     interior.setflags(write=False)
@@ -278,7 +274,6 @@ def _precompile_rows() -> None:
 
 def _precompile_cycles() -> None:
     """Compile the multigrid cycle's kernels (hybrid sweep, threaded products)."""
-
     precompile()
 
 
@@ -323,8 +318,6 @@ def warm_up(
     nested iteration reaches every kernel of the default pipeline.  Kernels of
     callable loads are compiled by the scene that uses them, on first use.
     """
-
-
     if method not in METHODS:
 
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")

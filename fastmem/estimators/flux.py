@@ -450,7 +450,7 @@ def cross_point_vertices(mesh, mu, contrast=CROSS_POINT_CONTRAST) -> np.ndarray:
     the patch of a, and each run of high triangles begins and ends at such an
     edge, so the number of runs is half the number of edges at a whose two
     triangles differ (high/low with a's threshold).  One pass over the edges
-    (O(E), no loop over vertices, no sort); tests/test_cross_point.py checks it
+    (O(E), no loop over vertices, no sort); tests/estimators/test_cross_point.py checks it
     against an angle-sorting reference.
     """
     mu = np.asarray(mu, dtype=np.float64)
@@ -676,7 +676,6 @@ def cross_point_correction(
     triangles (random per-triangle tensions, where every vertex qualifies and
     a global solve would cost more than the reconstruction).
     """
-
     if glob is None:
         glob = CROSS_POINT_GLOBAL
     mesh = scene.mesh
@@ -722,7 +721,6 @@ def _ring_step(mesh, coef, i, u, setup, bary, w):
     The gain is the decrease of :math:`\|\mu_i^{-1/2}(\mu_i\nabla u_{ih} +
     \sigma_{ih})\|^2`, :math:`b^T\phi` for the exact minimiser.
     """
-
     rt, tri, local, idx, wt = (setup[k] for k in ("rt", "tri", "local", "idx", "wt"))
     mu_k = setup["mu_k"]
     g = _p2_gradients(mesh.gradients[rt], bary)  # (R, nq, 6, 2)
@@ -873,7 +871,6 @@ def _joint_step(mesh, coef, i, u, setup):
     triangle means of s enter (its curl is constant; :func:`_rt1_means`), for the bubbles the
     4-point-exact rule on the ring triangles (s quadratic, curl linear).
     """
-
     mu, rt, dofs = setup["mu"], setup["rt"], setup["dofs"]
     grads = mesh.gradients
     current = Fluxes(mesh=mesh, coef=coef)
@@ -973,7 +970,6 @@ class ContactLoad:
 
 def _load_values(scene, i, tri, x, y, bary):
     """Values of f_i at the points ``(x, y)`` (S, nq) of triangles ``tri``."""
-
     f = scene.f1 if i == 1 else scene.f2
     kind = scene.data_kind(f"f{i}")
     if kind == "callable":

@@ -234,7 +234,6 @@ class LayerLoad:
 
 def _projected_load(scene, i):
     r"""Nodal values per triangle (M, 3) of :math:`\\Pi_K f_i`."""
-
     mesh = scene.mesh
     f = scene.f1 if i == 1 else scene.f2
     kind = scene.data_kind(f"f{i}")
@@ -360,7 +359,6 @@ def _pointwise_closed(scene, tri, mu1, mu2, lam_k):
     Returns ``(mom, osc1, osc2, points)``; ``points`` (the loads and chi there) lets
     :func:`_closed_oscillation` rescale the pressure without evaluating the loads again.
     """
-
     mesh = scene.mesh
     bary, w = triangle_rule(scene.load_degree)
     x, y = quadrature_points(mesh.vertices, mesh.triangles[tri], bary)
@@ -379,7 +377,6 @@ def _pointwise_closed(scene, tri, mu1, mu2, lam_k):
 
 def _closed_oscillation(scene, tri, mu1, mu2, points, scale=None):
     """Oscillations of ``f1 + s chi`` and ``f2 - s chi`` on ``tri`` (s: ``scale`` or 1)."""
-
     mesh = scene.mesh
     f1, f2, chi = points
     if scale is not None:
@@ -428,7 +425,6 @@ def _direct_fits(n_vertices):
     (:func:`fastmem.memory.memory_limit`) and of what the process can still reach
     (resident memory plus ``MemAvailable``, Linux).
     """
-
     need = 2 * LAYER_FACTOR_BYTES * n_vertices * max(1.0, math.log2(max(n_vertices, 2)) / 20.0)
     room = [memory_limit()[0]]
     avail = meminfo_bytes("MemAvailable")
@@ -511,7 +507,6 @@ def _sectors(mesh, mu, cut):
     over the patch, as :func:`fastmem.estimators.flux.cross_point_vertices`).  Vectorised:
     one union of the patch entries over the edges at cut vertices.
     """
-
     n = mesh.n_vertices
     m = mesh.n_triangles
     ptr = mesh.patch_ptr
@@ -572,7 +567,6 @@ def _cut_solver(scene, i, cutinfo):
     The matrix is ``mu_i A`` with the triangles of the cross points' patches
     assembled again on their sector unknowns.  Returns ``(solve, matrix, free)``.
     """
-
     key = ("layer_cut_solver", i)
     cache = scene._cache
     if key in cache:
@@ -613,7 +607,6 @@ def _cross_points(scene, u1, u2, lam, r1, r2, sel, mom, delta, closed, cuts):
     of z and what the solves leave (nodal), and the load moments of the broken
     rest (see :class:`LayerLoad`).
     """
-
     mesh = scene.mesh
     n = mesh.n_vertices
     t = mesh.triangles
@@ -729,7 +722,6 @@ def _sector_data(scene, i, u, lam, r, cutinfo, row_of, mom):
     ``int_K (Pi f_i psi_a +- ell_a - mu_i grad u . grad psi_a - rho_a psi_a)`` with
     the layer contact load (z = 0): the sector sums are what the broken z must carry.
     """
-
     mesh = scene.mesh
     tri, loc, owner = cutinfo["tri"], cutinfo["loc"], cutinfo["owner"]
     area = mesh.areas[tri]
@@ -780,7 +772,6 @@ def _components(scene, sel, closed, chimom):
     cross point gave eta 0.359 instead of 0.329 on the checkerboard 1e-6,
     f = (-4, 2), n = 32: components whose cross points are open gain too.)
     """
-
     mesh = scene.mesh
     m = mesh.n_triangles
     rows_c = np.flatnonzero(closed[sel])
@@ -974,7 +965,6 @@ def band_sets(mesh, tri, soft, gap):
     :math:`\varphi = \min(1, (1 - \lambda_p)/t, (1 - \lambda_q)/t)` over its free
     ends p, q, from both sides.
     """
-
     m = mesh.n_triangles
     t = mesh.triangles
     soft = np.asarray(soft, dtype=np.int8)

@@ -355,7 +355,6 @@ def load(path) -> Result:
         or dataset, is truncated, fails a checksum, holds an invalid mesh or
         non-finite solution, or is otherwise unreadable.
     """
-
     with _reading(path) as (f, p):
         vertices = _read(f, "mesh/vertices", p)
         triangles = _read(f, "mesh/triangles", p)

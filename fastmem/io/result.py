@@ -28,7 +28,6 @@ def check_nodal(mesh, value, name):
     magnitudes beyond :data:`fastmem.fem.scene.MAX_MAGNITUDE` (1e90, where squares and
     energies would overflow float64), naming ``name``.
     """
-
     if isinstance(value, np.ma.MaskedArray) and np.ma.is_masked(value):
         raise DataError(f"{name} has masked entries")
     try:
@@ -59,7 +58,6 @@ def check_triple(mesh, triple, prefix=""):
     Raises InputTypeError for non-real dtypes and DataError for wrong shapes
     or non-finite values, naming the array (``prefix`` + name).
     """
-
     if not isinstance(triple, (tuple, list)) or len(triple) != 3:
         raise InputTypeError(f"{prefix}(u1, u2, lam) must be a triple of nodal arrays")
     return [
@@ -83,7 +81,6 @@ def check_result(result) -> None:
     (the computation overflowed or broke down: never returned silently), wrong
     types InputTypeError and wrong shapes DataError, naming the field.
     """
-
     mesh = result.mesh
     if not isinstance(mesh, Mesh):
         raise InputTypeError(f"Result.mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
@@ -318,12 +315,10 @@ class Result:
     # fastmem.io.archive imports it to build loaded Results (no import circle).
     def save(self, path) -> None:
         """Write the result to an HDF5 archive atomically (see :func:`fastmem.io.archive.save`)."""
-
         check_result(self)  # fields may have been reassigned since construction
         write_archive(self, path)
 
     def export(self, path) -> None:
         """Write mesh and nodal fields to a VTU/XDMF file through meshio."""
-
         check_result(self)
         write_export(self, path)

@@ -62,7 +62,7 @@ _CHUNK = 1 << 20  # bytes per read while checksumming
 
 
 def fastmem_version() -> str:
-    """The version written into archives ("unknown" in a source tree without metadata)."""
+    """Return the version written into archives ("unknown" in a tree without metadata)."""
     return package_version("unknown")
 
 

@@ -298,7 +298,6 @@ def precompile() -> None:
     product writable or read-only, as a Result's arrays are), on a 2 x 2 matrix:
     the tiny problem of :func:`fastmem.warm_up` is below the sizes that use them.
     """
-
     a = sp.csr_matrix(np.array([[2.0, -1.0], [-1.0, 2.0]]))
     indptr, indices = _unsigned(a.indptr.astype(np.int32)), _unsigned(a.indices.astype(np.int32))
     x, b, old = np.zeros(2), np.ones(2), np.zeros(2)
@@ -361,7 +360,6 @@ def _hybrid_converges(a, n_blocks: int) -> bool:
     exceeds its entries coupling other blocks (a few rows per block boundary;
     true for every M-matrix).  Otherwise the level keeps pyamg's sweep.
     """
-
     return bool(cross_block_dominant(_unsigned(a.indptr), _unsigned(a.indices), a.data, n_blocks))
 
 

@@ -162,7 +162,6 @@ class Refinement:
 
     def prolongation_matrix(self):
         """Return the prolongation as a sparse matrix (N_new, N_old): ``P @ u == prolong(u)``."""
-
         n, k = self.n_old_vertices, self.n_new_vertices
         rows = np.concatenate([np.arange(n), np.repeat(np.arange(n, n + k), 2)])
         cols = np.concatenate([np.arange(n), self.parent_edges.ravel()])

@@ -156,7 +156,6 @@ class Kellogg:
 
     def scene(self, mesh, **options):
         """The contact scene (module docstring) on a mesh of (-1, 1)^2 with the axes as edges."""
-
         return Scene(mesh, mu=(self.mu(mesh), 1.0), f=(0.0, 0.0), g=self.boundary_value, **options)
 
     def boundary_value(self, x, y) -> np.ndarray:
@@ -170,7 +169,6 @@ class Kellogg:
         a\,\partial_n u\,(u - 2u_h)` (u is analytic on the boundary).  ``u2h``,
         if given, adds :math:`\|\nabla u_{2h}\|^2` (the exact u2 is 0).
         """
-
         u1h = np.asarray(u1h, dtype=np.float64) - self.shift
         e = mesh.edges[mesh.boundary_edges]
         p0, p1 = mesh.vertices[e[:, 0]], mesh.vertices[e[:, 1]]

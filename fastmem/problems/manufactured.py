@@ -689,7 +689,6 @@ class Manufactured:
         fastmem.fem.scene.Scene
             ``Scene(mesh, mu=(mu1, mu2), f=(self.f1, self.f2), g=self.g, **options)``.
         """
-
         return Scene(mesh, mu=self._mu, f=(self.f1, self.f2), g=self._g, **options)
 
     def interpolate(self, mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -245,7 +245,6 @@ def run_safeguard(scene, face_solve, start, k, max_steps, record, trigger, on_st
     ``on_step(k_global, active, triple)`` is called after each face solve
     with the global step number.
     """
-
     logger.warning(
         "Newton-min %s at step %d: switching to the monotone safeguard",
         "cycles" if trigger == "cycle" else "stalls",

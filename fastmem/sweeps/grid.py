@@ -261,8 +261,6 @@ def _check_signature(make_scene, runs) -> None:
 
 def _check_solve_options(solve_options) -> dict:
     """Validate the keywords of :func:`fastmem.solve` once, before anything starts."""
-
-
     if solve_options is None:
         return {}
     if not isinstance(solve_options, Mapping):

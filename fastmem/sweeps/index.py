@@ -53,8 +53,6 @@ def _index_columns(rows: list) -> dict:
 
 def _write_index(folder: Path, spec: dict, rows: list, state: dict) -> None:
     """Rewrite the index atomically (temporary file in ``folder``, then rename)."""
-
-
     cols = _index_columns(rows)
     with atomic_file(folder / INDEX_NAME) as tmp:
         with h5py.File(tmp, "w", track_order=True) as f:
@@ -79,7 +77,6 @@ def _write_index(folder: Path, spec: dict, rows: list, state: dict) -> None:
 
 def _read_index(study) -> tuple[dict, list]:
     """Return ``(attrs, rows)`` of the index of ``study``; ArchiveError if there is none."""
-
     folder = Path(os.fspath(study))
     path = folder / INDEX_NAME
     if not path.is_file():

@@ -158,7 +158,6 @@ def standard_scene(
     -------
     fastmem.Scene
     """
-
     if domain not in ("square", "lshape"):
         raise ParameterError(f"domain must be 'square' or 'lshape', got {domain!r}")
     mesh = Mesh.lshape(n) if domain == "lshape" else Mesh.square(n)

@@ -96,7 +96,6 @@ def _pending_row(name, params) -> dict:
 
 def _valid_archive(path: Path, params: dict):
     """Return the Result of ``path`` if it exists, validates, records ``params``; else None."""
-
     if not path.is_file():
         return None
     try:
@@ -138,7 +137,6 @@ def _tune_malloc() -> None:
 
 def _set_task_threads(threads: dict) -> None:
     """Numba threads of this task thread (``set_num_threads`` is per thread)."""
-
     _tune_malloc()
 
     count = threads.get("*")
@@ -196,7 +194,6 @@ def _run_job(job: _Job) -> dict:
 
 def _solve_claimed(job: _Job, archive: Path, rel: str, claims: Path, holder: list) -> dict:
     """Make, solve and save a run whose claim (``holder[0]``) this task holds; return its row."""
-
     _set_task_threads(job.threads)
     t0 = time.perf_counter()
     stage = "make_scene"

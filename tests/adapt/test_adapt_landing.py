@@ -11,7 +11,7 @@ from fastmem.kernels import nvb
 
 import fastmem as fm
 import fastmem.adapt.loop as afem
-from fastmem.mesh.refine import refinement_edges, refine_marked
+from fastmem.mesh.refine import refine_marked, refinement_edges
 
 
 def _default(mesh):

@@ -13,10 +13,10 @@ from fastmem.adapt.loop import (
     prolong_to_refined,
     refine_scene,
 )
-from fastmem.io.archive import info
 from fastmem.errors import InputTypeError, ParameterError
-from fastmem.solver.history import HISTORY_COLUMNS
+from fastmem.io.archive import info
 from fastmem.mesh.refine import refine_marked
+from fastmem.solver.history import HISTORY_COLUMNS
 
 
 def _default(mesh):

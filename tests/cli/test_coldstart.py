@@ -22,12 +22,12 @@ import threading
 import numba
 import numpy as np
 import pytest
-from fastmem.kernels import pool as _par
 from fastmem.kernels import flux as kf
+from fastmem.kernels import pool as _par
 
 import fastmem as fm
-from fastmem.estimators import bound, flux
 from fastmem.cli import warmup
+from fastmem.estimators import bound, flux
 
 
 def test_precompile_compiles_the_pipeline_specialisations():

@@ -3,7 +3,7 @@
 The recorded file ``pipeline_reference.json`` (next to this script) holds, for
 each case (method x path x scene), a small fingerprint of the returned triple
 ``(u1, u2, lam)`` and the iteration counts and error estimates; the test
-``tests/test_pipeline_reference.py`` recomputes every case with the current
+``tests/solver/test_pipeline_reference.py`` recomputes every case with the current
 code and compares (tolerances documented there).  The reference was recorded
 from the code before the refactor (commit in ``meta.git_commit``).
 
@@ -365,7 +365,7 @@ def main(argv=None) -> int:
 
     meta = {
         "description": "fastmem.solve reference results before the solver-pipeline refactor; "
-        "see tests/data/record_pipeline_reference.py and tests/test_pipeline_reference.py",
+        "see tests/data/record_pipeline_reference.py and tests/solver/test_pipeline_reference.py",
         "git_commit": _git("rev-parse", "HEAD"),
         "git_dirty": bool(_git("status", "--porcelain", "--untracked-files=no")),
         "recorded": time.strftime("%Y-%m-%d %H:%M:%S %z"),

@@ -17,11 +17,11 @@ from meshes import perturbed_square
 from numpy.testing import assert_allclose
 
 import fastmem as fm
-from fastmem.fem.assembly import assemble_mass
 from fastmem.errors import DataError
 from fastmem.estimators.terms import combine, friedrichs_constant, global_terms, local_terms
-from fastmem.fem.residual import residuals
+from fastmem.fem.assembly import assemble_mass
 from fastmem.fem.quadrature import triangle_rule
+from fastmem.fem.residual import residuals
 
 # --------------------------------------------------------------------------- references
 
@@ -658,3 +658,25 @@ def test_fused_contact_terms_match_separate_path(per_triangle):
     assert ((neg > 0) & (neg < 0.999 * mesh.areas)).any()  # cut triangles are exercised
     assert_allclose(nc, ref_nc, rtol=1e-12, atol=1e-15)
     assert_allclose(c, ref_c, rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "gap", [[5e-324, 0.0, 0.0], [5e-324, 0.0, -1.0], [0.0, 5e-324, -5e-324], [-5e-324, 0.0, 1e-320]]
+)
+def test_cut_terms_finite_for_subnormal_gaps(gap):
+    """Subnormal gaps (g = 5e-324, found by test_hostile) give finite terms, scaled exactly."""
+    from fastmem.kernels import cut
+
+    vertices = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    triangles = np.array([[0, 1, 2]])
+    lam_hat, mu2 = np.array([1.0, 2.0, 3.0]), np.ones(1)
+    gap = np.array(gap)
+    nc, c = cut.contact_terms(vertices, triangles, gap, lam_hat, mu2)
+    assert np.isfinite(nc).all()
+    assert np.isfinite(c).all()
+    assert (nc >= 0).all()
+    assert (c >= 0).all()
+    # eta_C is linear in the gap: the same cut on the gap scaled by 2**600 (all normal),
+    # scaled back, agrees to the few digits a subnormal result carries
+    _, c_big = cut.contact_terms(vertices, triangles, gap * 2.0**600, lam_hat, mu2)
+    assert c[0] == pytest.approx(c_big[0] * 2.0**-600, rel=1e-2, abs=1e-321)

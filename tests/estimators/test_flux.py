@@ -15,8 +15,8 @@ from meshes import circle_mesh, perturbed_square
 
 import fastmem as fm
 import fastmem.estimators.flux as flux
-from fastmem.fem.residual import residuals
 from fastmem.fem.quadrature import triangle_rule
+from fastmem.fem.residual import residuals
 
 # ----------------------------------------------------------------------------- data
 

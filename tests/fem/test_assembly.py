@@ -7,8 +7,8 @@ from numpy.testing import assert_allclose
 
 import fastmem as fm
 from fastmem.fem.assembly import assemble_load, assemble_mass, assemble_stiffness
-from fastmem.mesh.pattern import csr_structure
 from fastmem.fem.quadrature import triangle_rule
+from fastmem.mesh.pattern import csr_structure
 
 MESHES = {
     "square-right": lambda: fm.Mesh.square(5, diagonal="right"),

@@ -11,10 +11,11 @@ import pytest
 h5py = pytest.importorskip("h5py")
 meshio = pytest.importorskip("meshio")
 
-from fastmem.io import archive, writer as archive_write  # noqa: E402
 from fastmem.errors import ArchiveError, ParameterError  # noqa: E402
-from fastmem.mesh.mesh import Mesh  # noqa: E402
+from fastmem.io import archive  # noqa: E402
+from fastmem.io import writer as archive_write  # noqa: E402
 from fastmem.io.result import Estimate, Result  # noqa: E402
+from fastmem.mesh.mesh import Mesh  # noqa: E402
 
 SOLUTION_FIELDS = ("u1", "u2", "lam", "r1", "r2", "active")
 

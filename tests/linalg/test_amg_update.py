@@ -16,9 +16,10 @@ import pytest
 import scipy.sparse as sp
 
 import fastmem as fm
-from fastmem.solver import inexact as adaptive, steps
-from fastmem.linalg.amg import AMG_DEFAULTS, PCG, amg_preconditioner
 from fastmem.fem.assembly import assemble_stiffness
+from fastmem.linalg.amg import AMG_DEFAULTS, PCG, amg_preconditioner
+from fastmem.solver import inexact as adaptive
+from fastmem.solver import steps
 from fastmem.solver.steps import gap_delta, gap_matrix
 
 

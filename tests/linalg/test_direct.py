@@ -7,8 +7,8 @@ import scipy.sparse.linalg as spla
 from meshes import gmsh_square
 
 import fastmem as fm
-from fastmem.linalg.direct import ORDERINGS, factorize, fill_reducing_order
 from fastmem.errors import DataError, InputTypeError, ParameterError
+from fastmem.linalg.direct import ORDERINGS, factorize, fill_reducing_order
 from fastmem.solver.linear import GeneralStep
 
 

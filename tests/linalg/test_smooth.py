@@ -15,6 +15,7 @@ import scipy.sparse as sp
 from pyamg.relaxation.relaxation import gauss_seidel
 
 import fastmem as fm
+from fastmem.fem.assembly import assemble_stiffness
 from fastmem.linalg import amg
 from fastmem.linalg.amg import (
     AMG_DEFAULTS,
@@ -22,7 +23,6 @@ from fastmem.linalg.amg import (
     amg_preconditioner,
 )
 from fastmem.linalg.sparse import ThreadedCSR, threaded
-from fastmem.fem.assembly import assemble_stiffness
 from fastmem.solver.steps import gap_matrix
 
 

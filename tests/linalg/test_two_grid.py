@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import fastmem as fm
-from fastmem.solver import levels
-from fastmem.linalg.amg import PCG, TwoGridLaplacian, amg_preconditioner
 from fastmem.fem.assembly import assemble_stiffness
+from fastmem.linalg.amg import PCG, TwoGridLaplacian, amg_preconditioner
+from fastmem.solver import levels
 from fastmem.solver.nested import interpolation_matrix
 
 

@@ -7,8 +7,8 @@ from meshes import circle_mesh, perturbed_square
 from numpy.testing import assert_allclose
 
 import fastmem as fm
-from fastmem.mesh.pattern import csr_structure
 from fastmem.mesh.coarsen import coarse_mesh, locate
+from fastmem.mesh.pattern import csr_structure
 from fastmem.solver.nested import coarse_scenes, interpolation_matrix
 
 

@@ -31,8 +31,9 @@ from hypothesis import strategies as st
 from hypothesis.control import currently_in_test_context
 
 import fastmem as fm
-from fastmem.io import archive, writer as archive_write
 from fastmem.errors import FastmemError, InputTypeError, MeshError, MeshWarning
+from fastmem.io import archive
+from fastmem.io import writer as archive_write
 
 # Newton-min steps allowed per solve: the guard against endless iterations.
 MAX_NEWTON = 60
@@ -1175,3 +1176,16 @@ def test_estimate_refuses_bad_residuals(r1, r2):
     result, err = attempt(fm.estimate, scene, u1, z, z, r1=r1, r2=r2)
     assert result is None
     assert names_field(err, "r1", "r2"), err
+
+
+def test_subnormal_boundary_value_solves():
+    """The example hypothesis found: g = 5e-324 made eta_C NaN (fastmath reciprocal)."""
+    x, y = np.meshgrid([0.0, 0.5, 1.0], [0.0, 0.5, 1.0])
+    vertices = np.column_stack([x.ravel(), y.ravel()])
+    triangles = [[0, 1, 3], [1, 4, 3], [1, 2, 4], [2, 5, 4]]
+    triangles += [[3, 4, 6], [4, 7, 6], [4, 5, 7], [5, 8, 7]]
+    scene = fm.Scene(fm.Mesh(vertices, np.array(triangles)), f=(-1.0, 0.0), g=5e-324)
+    for method in ("inexact", "exact"):
+        result = fm.solve(scene, method=method)
+        assert np.isfinite(result.eta)
+        assert result.eta > 0

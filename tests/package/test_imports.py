@@ -2,8 +2,8 @@
 
 The graph is read from the source (every ``import`` and ``from ... import``
 statement anywhere in a file, also inside functions), so a lazy import that
-closes a circle is found as well as a module-level one.  The dependency
-direction is one way: cli -> api modules -> kernels.
+closes a circle is found as well as a module-level one.  The direction of every
+import (down the table of layers) is checked by tests/package/test_layout.py.
 """
 
 import ast

@@ -9,8 +9,8 @@ import pytest
 
 import fastmem as fm
 from fastmem import errors
-from fastmem.io.schema import DATASETS, GROUPS
 from fastmem.cli.main import main
+from fastmem.io.schema import DATASETS, GROUPS
 
 SCENE = fm.Scene(fm.Mesh.square(8), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
 

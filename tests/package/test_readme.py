@@ -85,7 +85,7 @@ def test_readme_cli_commands_run_in_order(tmp_path, monkeypatch, capsys):
         if argv[0] == "sweep" and not (tmp_path / argv[-1]).exists():
             continue  # a study file the reader writes; docs/sweeps.md has one to run
         if argv[0] == "plot" and "--x" in argv and not (tmp_path / argv[1]).exists():
-            continue  # the plot of that study (tests/test_sweep.py runs one)
+            continue  # the plot of that study (tests/sweeps/test_sweep.py runs one)
         assert main(argv) == 0, argv
         ran += 1
     assert ran >= 5

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import fastmem as fm
-from fastmem.estimators import flux
 from fastmem.errors import ParameterError
+from fastmem.estimators import flux
 from fastmem.problems.kellogg import Kellogg
 
 CONTRASTS = (10.0, 161.4476387975881, 1e3, 1e6)

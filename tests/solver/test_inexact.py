@@ -9,8 +9,8 @@ import scipy.sparse.linalg as spla
 from numpy.testing import assert_allclose
 
 import fastmem as fm
-from fastmem.linalg.amg import PCG, amg_preconditioner
 from fastmem.errors import ParameterError
+from fastmem.linalg.amg import PCG, amg_preconditioner
 from fastmem.solver.nested import (
     coarse_scenes,
     interpolation_matrix,

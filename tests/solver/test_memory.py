@@ -156,7 +156,8 @@ def test_lazy_hierarchy_and_released_state():
     assert not lazy.built
     assert stats["amg_setups"] == 0
     assert cg.z is None
-    eager = PCG(st.a_ii, st.rhs_s, np.zeros(st.rhs_s.size), fm.linalg.amg.amg_preconditioner(st.a_ii))
+    pre = fm.linalg.amg.amg_preconditioner(st.a_ii)
+    eager = PCG(st.a_ii, st.rhs_s, np.zeros(st.rhs_s.size), pre)
     for _ in range(3):
         assert cg.step()
         assert eager.step()

@@ -1,4 +1,4 @@
-"""The safeguard of Newton-min (fastmem.solver.safeguard): monotone, correct, and wired into solve()."""
+"""The safeguard of Newton-min (fastmem.solver.safeguard): monotone, correct, wired into solve()."""
 
 from __future__ import annotations
 

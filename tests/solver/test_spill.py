@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 import fastmem as fm
-from fastmem.solver import inexact as adaptive, steps
+from fastmem.solver import inexact as adaptive
+from fastmem.solver import steps
 
 
 def _scene(n, mu):

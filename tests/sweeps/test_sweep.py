@@ -1,4 +1,4 @@
-"""Parameter sweeps on dask.distributed (fastmem.sweeps.study, fastmem.cli.sweep): real Dask, no mocks.
+"""Parameter sweeps on dask.distributed (fastmem.sweeps, fastmem.cli.sweep): real Dask, no mocks.
 
 One LocalCluster of 2 worker processes (one task thread each) serves the module;
 the client-interruption test starts its own (in the killed subprocess).  Workers
@@ -35,7 +35,7 @@ distributed = pytest.importorskip("distributed")
 pd = pytest.importorskip("pandas")
 psutil = pytest.importorskip("psutil")  # a dependency of distributed
 
-from fastmem.cli import sweep as sweep_cli
+from fastmem.cli import sweep as sweep_cli  # noqa: E402
 from fastmem.sweeps import study as sweeps  # noqa: E402
 
 HERE = Path(__file__).resolve().parent

@@ -30,7 +30,8 @@ pytest.importorskip("psutil")  # fastmem.sweep_claims: is the owner process aliv
 
 from test_sweep import WAIT, wait_until  # noqa: E402  (the tests folder is on sys.path)
 
-from fastmem.sweeps import claims as sweep_claims, study as sweeps  # noqa: E402
+from fastmem.sweeps import claims as sweep_claims  # noqa: E402
+from fastmem.sweeps import study as sweeps  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 
