@@ -6,7 +6,6 @@ closes a circle is found as well as a module-level one.  The direction of every
 import (down the table of layers) is checked by tests/package/test_layout.py.
 """
 
-import ast
 import json
 import os
 import subprocess
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import fastmem.kernels
 import pytest
+from source_imports import modules, statements
 
 import fastmem
 
@@ -26,46 +26,20 @@ BENCH = ROOT / "bench"
 EXTRAS = ("matplotlib", "skfem", "gmsh", "sympy", "pytest", "hypothesis")
 
 
-def _modules(folder, package):
-    """Map module name -> source file for every ``.py`` file under ``folder``."""
-    out = {}
-    for path in sorted(Path(folder).rglob("*.py")):
-        rel = path.relative_to(folder).with_suffix("")
-        parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
-        out[".".join((package, *parts))] = path
-    return out
-
-
 FASTMEM = {
-    **_modules(Path(fastmem.__file__).parent, "fastmem"),
-    **_modules(Path(fastmem.kernels.__file__).parent, "fastmem.kernels"),
+    **modules(Path(fastmem.__file__).parent, "fastmem"),
+    **modules(Path(fastmem.kernels.__file__).parent, "fastmem.kernels"),
 }
-BENCH_MODULES = _modules(BENCH, "bench") if (BENCH / "__init__.py").is_file() else {}
+BENCH_MODULES = modules(BENCH, "bench") if (BENCH / "__init__.py").is_file() else {}
 SOURCES = {**FASTMEM, **BENCH_MODULES}
 
 
 def _imports(name, path, known):
     """Yield ``(module, line)`` for every import in ``path`` of a module in ``known``."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            targets = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parts = package.split(".")
-                base = ".".join([*parts[: len(parts) - node.level + 1], *filter(None, [base])])
-            # "from pkg import name": the submodule pkg.name if there is one, else pkg
-            targets = [
-                f"{base}.{alias.name}" if f"{base}.{alias.name}" in known else base
-                for alias in node.names
-            ]
-        else:
-            continue
-        for target in targets:
+    for statement in statements(name, path):
+        for target in statement.targets(known):
             if target in known and target != name:
-                yield target, node.lineno
+                yield target, statement.line
 
 
 def import_graph(sources):
@@ -162,7 +136,7 @@ def test_imports_resolve_relative_and_lazy(tmp_path):
     (pkg / "a.py").write_text("def f():\n    from .sub import b\n    import pkg.sub\n")
     (pkg / "sub" / "__init__.py").write_text("")
     (pkg / "sub" / "b.py").write_text("from .. import a\nfrom ..a import f\nimport numpy\n")
-    graph = import_graph(_modules(pkg, "pkg"))
+    graph = import_graph(modules(pkg, "pkg"))
     assert graph["pkg"] == {"pkg.a": 1}
     assert graph["pkg.a"] == {"pkg.sub.b": 2, "pkg.sub": 3}
     assert graph["pkg.sub.b"] == {"pkg.a": 1}

@@ -12,13 +12,13 @@ reported with its file and line whether or not the code path runs.
 
 from __future__ import annotations
 
-import ast
 import importlib
 import pathlib
 import re
 import sys
 
 import pytest
+from source_imports import modules, statements
 
 import fastmem
 
@@ -46,24 +46,11 @@ OPTIONAL = ("dask", "distributed", "pandas", "matplotlib", "gmsh", "tomli")
 PACKAGE = pathlib.Path(fastmem.__file__).parent
 KERNELS = pathlib.Path(fastmem.kernels.__file__).parent
 
-
-def _modules():
-    """(dotted name, path, is_package) of every module of fastmem and its kernels."""
-    out = []
-    for root, prefix in ((PACKAGE, "fastmem"), (KERNELS, "fastmem.kernels")):
-        for path in sorted(root.rglob("*.py")):
-            rel = path.relative_to(root).with_suffix("").parts
-            if prefix == "fastmem" and rel[0] == "kernels":
-                continue  # a source checkout with fastmem/kernels: counted under KERNELS
-            parts = [prefix, *rel]
-            is_pkg = parts[-1] == "__init__"
-            if is_pkg:
-                parts = parts[:-1]
-            out.append((".".join(parts), path, is_pkg))
-    return out
-
-
-MODULES = _modules()
+#: (dotted name, path, is_package) of every module of fastmem and its kernels.
+MODULES = [
+    (name, path, path.name == "__init__.py")
+    for name, path in {**modules(PACKAGE, "fastmem"), **modules(KERNELS, "fastmem.kernels")}.items()
+]
 
 
 def layer_of(name: str) -> int:
@@ -83,60 +70,18 @@ def subpackage_of(name: str) -> str:
     return ".".join(parts[:2]) if len(parts) > 1 else parts[0]
 
 
-def _imports(name, path, is_pkg):
-    """(line, target module, imported names, inside a function, source line) per import."""
-    tree = ast.parse(path.read_text(), filename=str(path))
-    lines = path.read_text().splitlines()
-    parents = {}
-    for node in ast.walk(tree):
-        for child in ast.iter_child_nodes(node):
-            parents[child] = node
-    out = []
-    for node in ast.walk(tree):
-        if not isinstance(node, (ast.Import, ast.ImportFrom)):
-            continue
-        inner, q = False, node
-        while q in parents:
-            q = parents[q]
-            if isinstance(q, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                inner = True
-                break
-        text = " ".join(lines[node.lineno - 1 : node.end_lineno])
-        if isinstance(node, ast.Import):
-            for alias in node.names:
-                out.append((node.lineno, alias.name, (), inner, text))
-            continue
-        if node.level:
-            base = name.split(".") if is_pkg else name.split(".")[:-1]
-            base = base[: len(base) - (node.level - 1)]
-            target = ".".join(base + ([node.module] if node.module else []))
-        else:
-            target = node.module
-        out.append((node.lineno, target, tuple(a.name for a in node.names), inner, text))
-    return out
-
-
-def _targets(target, names):
-    """The fastmem modules an import statement reaches (``from pkg import module`` too)."""
-    known = {m for m, _, _ in MODULES}
-    found = []
-    for n in names or ("",):
-        full = f"{target}.{n}" if n else target
-        found.append(full if full in known else target)
-    return found
-
-
 def layer_violations():
     bad = []
-    for name, path, is_pkg in MODULES:
+    known = {m for m, _, _ in MODULES}
+    for name, path, _ in MODULES:
         mine = layer_of(name)
-        for line, target, names, _, _ in _imports(name, path, is_pkg):
-            if not (target == "fastmem" or target.startswith("fastmem.")):
+        for st in statements(name, path):
+            if not (st.base == "fastmem" or st.base.startswith("fastmem.")):
                 continue
-            for t in _targets(target, names):
+            for t in st.targets(known):
                 if layer_of(t) > mine:
                     bad.append(
-                        f"{path.name}:{line} {name} ({LAYERS[mine][0]}) imports {t} "
+                        f"{path.name}:{st.line} {name} ({LAYERS[mine][0]}) imports {t} "
                         f"({LAYERS[layer_of(t)][0]})"
                     )
     return bad
@@ -144,28 +89,26 @@ def layer_violations():
 
 def private_imports():
     bad = []
-    for name, path, is_pkg in MODULES:
-        for line, target, names, _, _ in _imports(name, path, is_pkg):
-            if not target.startswith("fastmem") or subpackage_of(target) == subpackage_of(name):
+    for name, path, _ in MODULES:
+        for st in statements(name, path):
+            if not st.base.startswith("fastmem") or subpackage_of(st.base) == subpackage_of(name):
                 continue
-            parts = target.split(".")[2:] + [n for n in names]
+            parts = st.base.split(".")[2:] + list(st.names)
             private = [p for p in parts if p.startswith("_") and not p.startswith("__")]
             if private:
-                bad.append(f"{name}:{line} imports {private} from {target}")
+                bad.append(f"{name}:{st.line} imports {private} from {st.base}")
     return bad
 
 
 def function_imports():
     bad = []
-    for name, path, is_pkg in MODULES:
-        for line, target, _, inner, text in _imports(name, path, is_pkg):
-            if not inner:
+    for name, path, _ in MODULES:
+        for st in statements(name, path):
+            if not st.inside_function or st.base.split(".")[0] in OPTIONAL:
                 continue
-            if target.split(".")[0] in OPTIONAL:
-                continue
-            reason = re.search(r"#\s*lazy:.*\d", text)  # a measured reason: it has a number
+            reason = re.search(r"#\s*lazy:.*\d", st.text)  # a measured reason: it has a number
             if reason is None:
-                bad.append(f"{name}:{line} imports {target} inside a function")
+                bad.append(f"{name}:{st.line} imports {st.base} inside a function")
     return bad
 
 
