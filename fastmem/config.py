@@ -1,4 +1,4 @@
-"""Run-time settings: thread pools and Numba compilation flags.
+"""Run-time settings: the thread pools of the Numba kernels and of BLAS.
 
 fastmem runs two kinds of parallel work: Numba kernels (``prange`` loops over
 triangles or vertex patches) and BLAS calls inside scipy/pyamg.  On a small
@@ -8,9 +8,8 @@ thread.  fastmem therefore limits the BLAS pool to :data:`blas_threads` (default
 1) inside its solver phases, and leaves the Numba pool at
 :func:`numba.get_num_threads` unless :func:`set_threads` says otherwise.
 
-``FASTMATH_FLAGS`` is the single place where kernels take their fastmath
-setting.  ``nnan``/``ninf`` are deliberately absent: the active-set logic and
-``max(0, .)`` need IEEE semantics for NaN and infinity.
+The kernels' fastmath flags live with the kernels (``fastmem.kernels.FASTMATH``,
+set in ``kernels/_jit.py``).
 """
 
 from __future__ import annotations
@@ -23,9 +22,7 @@ from threadpoolctl import threadpool_limits
 
 from .errors import InputTypeError, ParameterError
 
-__all__ = ["FASTMATH_FLAGS", "blas_limits", "check_count", "get_threads", "set_threads"]
-
-FASTMATH_FLAGS = {"nsz", "arcp", "contract", "afn", "reassoc"}
+__all__ = ["blas_limits", "check_count", "get_threads", "set_threads"]
 
 _settings = {"blas_threads": int(os.environ.get("FASTMEM_BLAS_THREADS", "1"))}
 

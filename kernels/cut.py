@@ -47,32 +47,33 @@ from .pool import parallel_for
 __all__ = ["contact_terms", "positive_area", "positive_product"]
 
 
-#: Smallest normal float64.  A denominator below it is subnormal: its reciprocal
-#: overflows, and the kernels' fastmath ``arcp`` (a / b as a * (1 / b)) would turn
-#: 0 / b into 0 * inf = NaN (found by tests/package/test_hostile.py with g = 5e-324).
+#: Smallest normal float64.  A cut with subnormal nodal values would divide by a
+#: subnormal number, whose reciprocal overflows: the kernels' fastmath ``arcp``
+#: (a / b as a * (1 / b)) then turns 0 / b into 0 * inf = NaN (found by
+#: tests/package/test_hostile.py with g = 5e-324).
 _TINY = 2.2250738585072014e-308
-#: Exact rescaling of subnormal values (a power of two): ratios are unchanged.
+#: Exact rescaling of such values (powers of two): the cut's ratios are unchanged.
 _UP = 2.0**600
-
-
-@jit
-def _edge_split(wp, wn):
-    """``(t, 1 - t)`` with ``t = wp / (wp - wn)`` for ``wp > 0 >= wn``, each capped at 1.
-
-    The denominator is ``>= wp > 0``; where it is subnormal both values are scaled
-    by a power of two first (exact), so no reciprocal overflows.  Normal inputs
-    take the same operations as without the guard (bitwise the same results).
-    """
-    d = wp - wn
-    if d < _TINY:
-        wp = wp * _UP
-        wn = wn * _UP
-        d = wp - wn
-    return min(wp / d, 1.0), min(-wn / d, 1.0)
+_DOWN = 2.0**-600
 
 
 @jit
 def _cut(w0, w1, w2, v0, v1, v2):
+    """:func:`_cut_normal`, with subnormal ``w`` rescaled exactly first (``w⁺`` is linear).
+
+    One test per triangle; normal values take :func:`_cut_normal` unchanged.
+    """
+    a0, a1, a2 = abs(w0), abs(w1), abs(w2)
+    # one branch: the comparisons combined without short-circuits
+    tiny = ((a0 < _TINY) & (a0 > 0.0)) | ((a1 < _TINY) & (a1 > 0.0)) | ((a2 < _TINY) & (a2 > 0.0))
+    if tiny:
+        frac, moment = _cut_normal(w0 * _UP, w1 * _UP, w2 * _UP, v0, v1, v2)
+        return frac, moment * _DOWN
+    return _cut_normal(w0, w1, w2, v0, v1, v2)
+
+
+@jit
+def _cut_normal(w0, w1, w2, v0, v1, v2):
     """Area fraction of ``{w > 0}`` in K and ``(v, w⁺)_K / |K|`` for nodal P1 ``w``, ``v``.
 
     Returns
@@ -104,16 +105,24 @@ def _cut(w0, w1, w2, v0, v1, v2):
         wa, wb, wc, va, vb, vc = w2, w0, w1, v2, v0, v1
     if n_pos == 1:
         # wa > 0 >= wb, wc; q_x = (1 - t_x) a + t_x x on edge (a, x).
-        tb, sb = _edge_split(wa, wb)  # sb = 1 - tb
-        tc, sc = _edge_split(wa, wc)
+        db = wa - wb  # >= wa > 0
+        dc = wa - wc
+        tb = min(wa / db, 1.0)
+        sb = min(-wb / db, 1.0)  # 1 - tb
+        tc = min(wa / dc, 1.0)
+        sc = min(-wc / dc, 1.0)
         vqb = sb * va + tb * vb
         vqc = sc * va + tc * vc
         frac = tb * tc
         # triangle (a, q_b, q_c), w = (wa, 0, 0): |T|/12 * wa (2 va + vqb + vqc)
         return frac, frac * wa * (2.0 * va + vqb + vqc) / 12.0
     # n_pos == 2: wb, wc > 0 >= wa; q_x = (1 - t_x) x + t_x a on edge (x, a).
-    tb, sb = _edge_split(wb, wa)  # sb = 1 - tb
-    tc, sc = _edge_split(wc, wa)
+    db = wb - wa  # >= wb > 0
+    dc = wc - wa
+    tb = min(wb / db, 1.0)
+    sb = min(-wa / db, 1.0)  # 1 - tb
+    tc = min(wc / dc, 1.0)
+    sc = min(-wa / dc, 1.0)
     vqb = sb * vb + tb * va
     vqc = sc * vc + tc * va
     f1 = tc  # triangle (b, c, q_c), w = (wb, wc, 0)
