@@ -25,7 +25,7 @@ import time
 
 from .adapt.loop import solve_to_tolerance
 from .config import blas_limits
-from .errors import InputTypeError, ParameterError
+from .errors import InputTypeError, ParameterError, checked_keywords
 from .fem.loaddata import expect_estimates
 from .fem.scene import Scene
 from .io.result import Result, check_triple
@@ -38,6 +38,7 @@ from .solver.options import METHODS, SolveOptions
 __all__ = ["HISTORY_COLUMNS", "METHODS", "complementarity", "solve"]
 
 
+@checked_keywords("fastmem.solve")
 def solve(
     scene: Scene,
     method: str = "inexact",
@@ -198,6 +199,9 @@ def solve(
 
     Raises
     ------
+    ParameterError
+        An option out of range, or an unknown keyword (the message names the
+        closest valid one and lists them all).
     CyclingError
         With ``safeguard=False``: when an active set repeats an earlier one.
     MemoryLimitError

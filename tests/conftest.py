@@ -13,6 +13,7 @@ from meshes import circle_mesh
 SLOW = {
     "package/test_bench.py": 92.6,  # every benchmark's --quick run, in subprocesses
     "adapt/test_adapt_landing.py::test_landing_does_not_overshoot_and_still_converges": 17.0,
+    "package/test_examples.py::test_example[gallery]": 16.1,  # every figure of docs/gallery.md
     "package/test_scaling.py::test_merge_keeps_the_other_sizes_and_refits": 12.2,
     "cli/test_coldstart.py::test_cold_run_with_helper_matches_in_process_solve": 8.9,
     "sweeps/test_sweep_claims.py::test_orphan_of_killed_client_is_not_solved_again": 8.8,

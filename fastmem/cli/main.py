@@ -24,7 +24,7 @@ import numpy as np
 
 from ..about import package_version
 from ..config import set_threads
-from ..errors import FastmemError, MemoryLimitError, ParameterError
+from ..errors import FastmemError, MemoryLimitError, ParameterError, closest_name
 from ..fem.scene import Scene
 from ..io.archive import export, info, load
 from ..io.writer import ARCHIVE_SUFFIXES, EXPORT_SUFFIXES, check_output, companion_files
@@ -33,7 +33,7 @@ from ..mesh.mesh import Mesh
 from ..pipeline import solve
 from .plot import add_parser as _add_plot
 from .sweep import add_sweep_parser, extend_plot_parser
-from .warmup import kernels_cached, start_compile_helper, warm_up
+from .warmup import KernelMeter, WarmUp, kernels_cached, start_compile_helper, warm_up
 
 __all__ = ["main"]
 
@@ -49,9 +49,42 @@ def _out(text: str = "") -> None:
     sys.stdout.flush()
 
 
+class _Parser(argparse.ArgumentParser):
+    """An argument parser that refuses unknown arguments itself, suggesting the closest option.
+
+    argparse hands a subcommand's unknown arguments up to the top-level parser,
+    which then prints the top-level usage (``fastmem run --N 64`` showed
+    ``usage: fastmem [-h] [--version] COMMAND ...``).  Every parser of the
+    command line is of this class (``add_subparsers`` makes its subparsers of
+    the parent's class), so the subcommand that received an unknown option
+    refuses it, with its own usage and the closest of its options.
+    """
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(self._unrecognized(extras))
+        return namespace, extras
+
+    def _unrecognized(self, extras: list[str]) -> str:
+        options = [o for action in self._actions for o in action.option_strings]
+        fixes = []
+        for arg in extras:
+            name = arg.split("=", 1)[0]
+            if not name.startswith("-") or name in ("-", "--"):
+                continue
+            best = closest_name(name, options)
+            if best is not None:
+                fixes.append(f"{best} instead of {name}")
+        text = f"unrecognized arguments: {' '.join(extras)}"
+        if fixes:
+            return f"{text}; did you mean {', '.join(fixes)}?"
+        return f"{text}; {self.prog} --help lists the options"
+
+
 def _build_parser() -> argparse.ArgumentParser:
 
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="fastmem",
         description="Two-membrane contact problem: P1 finite elements, Newton-min.",
     )
@@ -181,7 +214,6 @@ def _build_parser() -> argparse.ArgumentParser:
         help="file to write: .vtu (one file) or .xdmf (with its heavy data in OUT.h5)",
     )
 
-
     extend_plot_parser(_add_plot(sub))  # plot: an archive, or a sweep study folder
     add_sweep_parser(sub)
     return p
@@ -282,25 +314,75 @@ def _write_outputs(result, outputs) -> None:
         _out(f"  {label:<17} {path}" + (f"  ({'; '.join(notes)})" if notes else ""))
 
 
-def _warm_up(args, method, mesh, adaptive) -> float:
-    """Compile or load the kernels first, saying so: the first run compiles for ~7 s."""
-    cached = kernels_cached()
-    if cached is False:
-        text = "  compiling Numba kernels (first run only, about 6 s) ..."
+#: printed under the kernels line by a run that compiled any kernel
+FIRST_USE_NOTE = (
+    "  note: kernels compile on first use and stay cached on disk; the first run with another\n"
+    "        feature (--tol/--rtol, --mesh, another --method, --no-estimate) compiles more, once"
+)
+
+
+def _kernels_label(quiet: bool) -> None:
+    """Say, before any kernel compiles, that kernels come next (the outcome follows)."""
+    if quiet:
+        return
+    if kernels_cached() is False:
+        text = "  compiling Numba kernels (first use) ..."
+    else:  # cached kernels load; a feature used for the first time still compiles its own
+        text = "  Numba kernels (loading from cache, compiling any not there) ..."
+    sys.stdout.write(text)
+    sys.stdout.flush()
+
+
+def _build_mesh(args) -> Scene:
+    if args.mesh is not None:
+        mesh = Mesh.read(args.mesh)
     else:
-        text = "  loading compiled kernels ..."
-    if not args.quiet:
-        sys.stdout.write(text)
-        sys.stdout.flush()
-    done = warm_up(
-        method,
-        estimate=not args.no_estimate,
-        adaptive=adaptive,
-        unstructured=mesh.coarser() is None,
+        n = DEFAULT_N if args.n is None else args.n
+        mesh = Mesh.lshape(n) if args.domain == "lshape" else Mesh.square(n)
+    for _ in range(args.refine):
+        mesh = mesh.refine()
+    return Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=args.g)
+
+
+def _scene_and_kernels(args, method: str, adaptive: bool) -> tuple[Scene, float, float]:
+    """Build the scene and compile or load the kernels; return (scene, mesh s, kernels s).
+
+    Every compilation of the span is booked as kernels: the solver kernels the
+    warm-up compiles, the callees of the flux kernel compiled while its helper
+    process starts, and the mesh kernels that building the mesh compiles
+    (timed by Numba's compile events and taken out of the mesh's seconds).
+    """
+    meter = KernelMeter()
+    _kernels_label(args.quiet)
+    t0 = time.perf_counter()
+    try:
+        if method == "inexact" or not args.no_estimate:
+            start_compile_helper()  # an empty cache: the flux kernel compiles beside the mesh
+        t_mesh = time.perf_counter()
+        with meter.timing():
+            scene = _build_mesh(args)
+        t_mesh = time.perf_counter() - t_mesh - meter.compile_seconds
+        done = warm_up(
+            method,
+            estimate=not args.no_estimate,
+            adaptive=adaptive,
+            unstructured=scene.mesh.coarser() is None,
+        )
+    except BaseException:
+        if not args.quiet:
+            _out(" stopped")  # end the line: the error follows on stderr
+        raise
+    total = WarmUp(
+        seconds=time.perf_counter() - t0 - t_mesh,
+        compiled=meter.compiled,
+        loaded=meter.loaded,
+        helper=done.helper,
     )
     if not args.quiet:
-        _out(f" {done}")
-    return done.seconds
+        _out(f" {total}")
+        if total.compiled:
+            _out(FIRST_USE_NOTE)
+    return scene, t_mesh, total.seconds
 
 
 def _cmd_run(args) -> int:
@@ -324,12 +406,9 @@ def _cmd_run(args) -> int:
         raise ParameterError(f"--refine must be >= 0, got {args.refine}")
     outputs = _outputs(args)  # before any work: a bad path must not cost a solve
     if args.memory_limit is not None:  # also for the mesh constructors' own check
-
-
         memory_limit(args.memory_limit)  # a bad value is refused here, naming it
         os.environ[MEMORY_LIMIT_ENV] = str(args.memory_limit)
     if args.mesh is None:  # a structured mesh that cannot fit is refused before it is built
-
         n = DEFAULT_N if args.n is None else args.n
         if n >= 1:
             size = 4 ** min(args.refine, 30)
@@ -340,23 +419,17 @@ def _cmd_run(args) -> int:
             check_memory(nv * size, nt * size, method, not args.no_estimate, args.memory_limit)
     if args.threads is not None or args.blas_threads is not None:
         set_threads(numba=args.threads, blas=args.blas_threads)
-    if method == "inexact" or not args.no_estimate:
-
-        start_compile_helper()  # an empty cache: the flux kernel compiles beside the mesh
-    t0 = time.perf_counter()
     if args.mesh is not None:
-        mesh = Mesh.read(args.mesh)
         source = str(args.mesh)
     else:
-        n = DEFAULT_N if args.n is None else args.n
-        mesh = Mesh.lshape(n) if args.domain == "lshape" else Mesh.square(n)
-        source = f"{args.domain} n={n}"
+        source = f"{args.domain} n={DEFAULT_N if args.n is None else args.n}"
+    if args.refine:
+        source += f", refined {args.refine} time{'s' if args.refine > 1 else ''}"
+    _out(f"fastmem run: {source}")
     adapt = _adapt_keywords(args)
-    for _ in range(args.refine):
-        mesh = mesh.refine()
-    scene = Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=args.g)
-    t_mesh = time.perf_counter() - t0
-    _out(f"fastmem run: {source}, {mesh.n_vertices} vertices, {mesh.n_triangles} triangles")
+    scene, t_mesh, t_kernels = _scene_and_kernels(args, method, adaptive)
+    mesh = scene.mesh
+    _out(f"  mesh              {mesh.n_vertices} vertices, {mesh.n_triangles} triangles")
     _out(
         f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), g = {args.g:g}, "
         f"method = {method}"
@@ -364,7 +437,6 @@ def _cmd_run(args) -> int:
     for path, existed in outputs:
         if existed:
             _out(f"  {path} exists and will be replaced when the run ends")
-    t_kernels = _warm_up(args, method, mesh, adaptive)
     if adaptive:
         goal = " or ".join(
             f"{name} {getattr(args, name):g}" for name in ("tol", "rtol") if getattr(args, name)
@@ -498,7 +570,6 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except FastmemError as exc:
-
         hint = " (command line: --memory-limit)" if isinstance(exc, MemoryLimitError) else ""
         sys.stderr.write(f"fastmem: error: {exc}{hint}\n")
         return 2
@@ -512,7 +583,7 @@ def _skip_exit_collections() -> None:
 
     The interpreter's shutdown runs full collections over every object alive,
     and Numba's compiler leaves a great many: 0.35 s of the exit after a solve
-    (the whole first run is about 6 s), 0.03 s once they are frozen.  Only the
+    (of a first run of about 7 s), 0.03 s once they are frozen.  Only the
     process's exit follows, which reclaims the memory anyway; files are closed
     and flushed before (archives are written atomically, standard streams are
     flushed at exit regardless).

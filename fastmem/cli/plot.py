@@ -4,21 +4,22 @@ Needs matplotlib (the ``plot`` extra: ``pip install 'fastmem[plot]'``); it is
 imported only when a figure is drawn, so ``import fastmem.cli.plot`` and the
 command-line glue work without it.
 
-* :func:`plot_history` draws the convergence history.  Results of the
-  adaptive methods (history columns ``inner_total`` and ``eta*``) show
-  ``eta``, ``eta_disc``, ``eta_lin`` and ``eta_alg`` against the cumulative
-  number of inner (linear-solver) iterations, with a dotted vertical line where
-  each new Newton step begins (dashed where a new mesh level begins).  Results
-  of the ``"exact"`` method (columns ``comp_norm`` and ``res_norm``) show both
-  norms against the Newton step.
+* :func:`plot_history` draws the convergence history: ``eta`` and its
+  components against the cumulative number of CG iterations (against the
+  Newton step for the ``"exact"`` method), every other mesh level shaded,
+  the starts of Newton steps marked on the top edge, predicted (not
+  computed) ``eta_disc`` values as hollow markers.
 * :func:`plot_solution` draws ``u1``, ``u2`` and the gap ``u1 - u2`` with the
-  contact set.
+  contact set filled and outlined.
+* :func:`plot_contact_pressure` draws the multiplier ``lam`` and
+  :func:`plot_indicators` the error indicators ``eta_K`` per triangle.
 * :func:`plot_adaptivity` draws a solve to a tolerance (``result.adaptivity``):
   ``eta`` and its components against the number of vertices of each mesh
   (log-log, with the optimal slope ``N^(-1/2)`` and, when given, the curve of
-  uniform refinement), and the final adapted mesh coloured by the refinement
-  indicators ``eta_K``.
+  uniform refinement), and the edges of the final adapted mesh.
 * :func:`plot_result` combines them in one figure and optionally saves it.
+* :func:`column_label` gives the words used as axis labels for result and
+  sweep-table columns.
 * :func:`add_parser` and :func:`run_plot` implement the ``fastmem plot``
   subcommand.
 
@@ -35,17 +36,23 @@ import os
 import sys
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..adapt.loop import indicators
 from ..errors import FastmemError, ParameterError
 from ..io.archive import info, load
+from ..sweeps.grid import INDEX_FORMAT, INDEX_NAME
 
 __all__ = [
+    "COLUMN_LABELS",
     "MISSING_MATPLOTLIB",
     "add_parser",
+    "column_label",
     "plot_adaptivity",
+    "plot_contact_pressure",
     "plot_history",
+    "plot_indicators",
     "plot_result",
     "plot_solution",
     "run_plot",
@@ -58,19 +65,72 @@ MISSING_MATPLOTLIB = "fastmem plot needs matplotlib: pip install 'fastmem[plot]'
 
 # (history column, legend label, marker) of the estimator curves of the adaptive methods
 _ESTIMATOR_CURVES = (
-    ("eta", r"$\eta$", "o"),
-    ("eta_disc", r"$\eta_\mathrm{disc}$", "s"),
-    ("eta_lin", r"$\eta_\mathrm{lin}$", "^"),
-    ("eta_alg", r"$\eta_\mathrm{alg}$", "v"),
+    ("eta", r"$\eta$ (bound)", "o"),
+    ("eta_disc", r"$\eta_\mathrm{disc}$ (discretisation)", "s"),
+    ("eta_lin", r"$\eta_\mathrm{lin}$ (linearisation)", "^"),
+    ("eta_alg", r"$\eta_\mathrm{alg}$ (algebraic)", "v"),
 )
 # (history column, legend label, marker) of the curves of the "exact" method
 _NEWTON_CURVES = (
     ("comp_norm", r"$\|\min(u_1 - u_2, \lambda)\|$", "o"),
     ("res_norm", r"$\|R\|$", "s"),
 )
-_NEWTON_STEP_LABEL = "new Newton step"
-_LEVEL_LABEL = "new mesh level"
-_SOLUTION_SIZE = (3, 1)  # the three panels drawn by plot_solution
+_PREDICTED_LABEL = r"$\eta_\mathrm{disc}$ predicted, not computed"
+_NEWTON_STEP_LABEL = "a Newton step starts"
+_LEVEL_LABEL = "mesh levels (alternate shading)"
+_CONTACT_COLOUR = "#00d5ff"  # cyan: apart from viridis, magma and cividis
+_SHOWN_DECADES = 3.0
+"""Components more than this many decades below the smallest bound are not drawn.
+
+The stopping tests compare the components with the bound; one a thousand times
+smaller plays no part in them (typically ``eta_alg`` at round-off after a
+direct solve on a coarse level), and drawing it would squeeze the useful range
+into a fraction of the axes.  The legend counts the values left out.
+"""
+
+#: Words for the columns of results and sweep tables, used as axis labels.
+COLUMN_LABELS = {
+    "n": "cells per side $n$",
+    "refine": "uniform refinements",
+    "domain": "domain",
+    "mu1": r"tension $\mu_1$ of membrane 1",
+    "mu2": r"tension $\mu_2$ of membrane 2",
+    "f1": "load $f_1$ on membrane 1",
+    "f2": "load $f_2$ on membrane 2",
+    "g": "boundary value $g$ of membrane 1",
+    "tol": "tolerance on the error bound",
+    "rtol": "relative tolerance on the error bound",
+    "method": "method",
+    "converged": "converged",
+    "eta": r"error bound $\eta$",
+    "eta_disc": r"discretisation estimator $\eta_\mathrm{disc}$",
+    "eta_lin": r"linearisation estimator $\eta_\mathrm{lin}$",
+    "eta_alg": r"algebraic estimator $\eta_\mathrm{alg}$",
+    "contact_fraction": "contact fraction (share of vertices in contact)",
+    "newton_steps": "Newton steps",
+    "cg_iterations": "CG iterations (all levels)",
+    "vertices": "vertices",
+    "triangles": "triangles",
+    "seconds": "solve time (s)",
+}
+
+
+def column_label(name: str) -> str:
+    r"""Return the axis label of a result or sweep-table column: words, with the name as fallback.
+
+    Parameters
+    ----------
+    name : str
+        A column name, e.g. ``"mu2"`` or ``"contact_fraction"``.
+
+    Returns
+    -------
+    str
+        For example ``"tension $\mu_2$ of membrane 2"``; a column without a
+        description (a parameter of a user's factory) gets its name with
+        underscores as spaces.
+    """
+    return COLUMN_LABELS.get(name, name.replace("_", " "))
 
 
 def _require_matplotlib():
@@ -103,61 +163,172 @@ def _axes_row(axes, count: int, figsize, what: str) -> list:
         return [fig.add_subplot(1, count, i + 1) for i in range(count)]
     axes = list(np.ravel(np.asarray(axes, dtype=object)))
     if len(axes) != count:
-
         raise ParameterError(f"{what} needs {count} axes, got {len(axes)}")
     return axes
+
+
+def _one_axes(ax, figsize):
+    return _new_figure(figsize).add_subplot() if ax is None else ax
 
 
 def _column(history: dict, name: str) -> np.ndarray:
     return np.asarray(history[name], dtype=np.float64).ravel()
 
 
-def _plot_curves(ax, history: dict, x: np.ndarray, curves) -> int:
-    """Plot the columns of ``curves`` present in ``history`` against ``x``, log-safe.
+def _positive(y: np.ndarray) -> np.ndarray:
+    return np.isfinite(y) & (y > 0)
 
-    Non-finite and non-positive points are left out per curve (they have no
-    place on a log axis); curves without any remaining point are not drawn.
-    Returns the number of curves drawn.
+
+def _shown_floor(table: dict) -> float:
+    """Smallest value drawn on an estimator axis: ``_SHOWN_DECADES`` below the smallest bound.
+
+    The bound is ``eta`` (or ``eta_disc`` where no ``eta`` was evaluated);
+    without either, nothing is left out (0).
     """
-    drawn = 0
+    for name in ("eta", "eta_disc"):
+        if name in table:
+            y = _column(table, name)
+            y = y[_positive(y)]
+            if y.size:
+                return float(y.min()) * 10.0**-_SHOWN_DECADES
+    return 0.0
+
+
+def _plot_curves(ax, table: dict, x: np.ndarray, curves, *, floor: float = 0.0) -> list:
+    """Plot the columns of ``curves`` present in ``table`` against ``x`` on a log axis.
+
+    Points that are NaN, infinite, zero or negative have no place on a log
+    axis and are left out per curve (estimators are NaN where they were not
+    evaluated).  Points below ``floor`` are left out too; the legend says how
+    many.  Where the table has ``fresh_disc``, the ``eta_disc`` values not
+    computed from a flux of that row's iterate (predicted from the coarser
+    level, or carried over) are drawn as hollow markers without a line, gid
+    ``eta_disc_predicted``.  Curves without a point left are not drawn.
+
+    Returns the y values drawn (one array per curve drawn).
+    """
+    drawn = []
+    fresh = None
+    if "fresh_disc" in table:
+        fresh = _column(table, "fresh_disc") > 0
     for name, label, marker in curves:
-        if name not in history:
+        if name not in table:
             continue
-        y = _column(history, name)
+        y = _column(table, name)
         n = min(len(x), len(y))
         xs, ys = x[:n], y[:n]
-        keep = np.isfinite(xs) & np.isfinite(ys) & (ys > 0)
-        if not keep.any():
-            logger.debug("history column %s has no positive finite value: not plotted", name)
-            continue
-        (line,) = ax.plot(xs[keep], ys[keep], marker=marker, markersize=4, label=label)
-        line.set_gid(name)
-        drawn += 1
+        keep = np.isfinite(xs) & _positive(ys)
+        below = keep & (ys < floor)
+        keep &= ~below
+        if below.any():
+            label = f"{label}, {int(below.sum())} < {floor:.0e} left out"
+        parts = [(name, keep, label, dict(marker=marker, markersize=4))]
+        if name == "eta_disc" and fresh is not None and not fresh[:n].all():
+            predicted = dict(
+                marker=marker, markersize=4, linestyle="none", markerfacecolor="none", alpha=0.6
+            )
+            parts = [
+                (name, keep & fresh[:n], label, dict(marker=marker, markersize=4)),
+                ("eta_disc_predicted", keep & ~fresh[:n], _PREDICTED_LABEL, predicted),
+            ]
+        colour = None
+        for gid, mask, text, style in parts:
+            if not mask.any():
+                logger.debug("history column %s has no point to draw", gid)
+                continue
+            (line,) = ax.plot(xs[mask], ys[mask], label=text, color=colour, **style)
+            colour = line.get_color()  # predicted points in the colour of their curve
+            line.set_gid(gid)
+            drawn.append(ys[mask])
     return drawn
 
 
-def _newton_step_starts(history: dict, x: np.ndarray):
-    """Cumulative inner-iteration counts at which a new Newton step begins.
+def _fit_log_range(ax, drawn: list) -> None:
+    """Set the y limits of a log axis to the values drawn, with a little margin."""
+    if not drawn:
+        return
+    values = np.concatenate(drawn)
+    lo, hi = float(values.min()), float(values.max())
+    ax.set_ylim(lo / 2.0, hi * 2.0)
 
-    A new step begins where ``k`` (or the mesh ``level``, when the history has
-    that column) changes between consecutive rows; its start is the
-    ``inner_total`` of the last row of the previous step.  Returns the starts
-    and, for each, whether it also starts a new mesh level.
+
+def _changes(history: dict, name: str, n: int) -> np.ndarray:
+    """Rows ``i`` (``< n - 1``) after which column ``name`` changes."""
+    c = _column(history, name)[:n]
+    return np.flatnonzero(c[1:] != c[:-1])
+
+
+def _mark_levels_and_steps(ax, history: dict, x: np.ndarray, *, by_inner: bool) -> None:
+    """Shade every other mesh level and mark where Newton steps start.
+
+    A level spans from the ``x`` of the last row of the previous level to
+    the ``x`` of its own last row; odd levels get a grey band (gid
+    ``"level"``).  With ``by_inner`` (one row per estimator evaluation), the
+    starts of the Newton steps that do not start a level are marked by small
+    triangles on the top edge (a :class:`~matplotlib.lines.Line2D` with gid
+    ``"newton_steps"``).
     """
-    if "k" not in history:
-        return np.empty(0), np.empty(0, dtype=bool)
-    keys = [_column(history, "k")]
-    if "level" in history:
-        keys.append(_column(history, "level"))
-    n = min([len(x)] + [len(c) for c in keys])
+    n = len(x)
     if n < 2:
-        return np.empty(0), np.empty(0, dtype=bool)
-    changed = [c[1:n] != c[: n - 1] for c in keys]
-    rows = np.flatnonzero(np.logical_or.reduce(changed))  # row i + 1 starts a new step
-    new_level = changed[1][rows] if len(changed) > 1 else np.zeros(rows.size, dtype=bool)
-    starts = x[rows]
-    finite = np.isfinite(starts)
-    return starts[finite], new_level[finite]
+        return
+    level_ends = _changes(history, "level", n) if "level" in history else np.empty(0, int)
+    if level_ends.size:
+        first = 0.5
+        if by_inner:  # where the first row's step began
+            first = x[0] - (_column(history, "inner")[0] if "inner" in history else 0.0)
+        edges = np.concatenate(([first], x[level_ends], [x[n - 1]]))
+        labelled = False
+        for i in range(1, len(edges) - 1, 2):
+            span = ax.axvspan(
+                edges[i],
+                edges[i + 1],
+                color="0.90",
+                zorder=0,
+                linewidth=0,
+                label="_nolegend_" if labelled else _LEVEL_LABEL,
+            )
+            span.set_gid("level")
+            labelled = True
+    if by_inner and "k" in history:
+        step_ends = np.setdiff1d(_changes(history, "k", n), level_ends)
+        starts = x[step_ends]
+        starts = starts[np.isfinite(starts)]
+        if starts.size:
+            (ticks,) = ax.plot(
+                starts,
+                np.ones_like(starts),
+                transform=ax.get_xaxis_transform(),
+                linestyle="none",
+                marker="v",
+                markersize=5,
+                color="0.35",
+                clip_on=False,
+                label=_NEWTON_STEP_LABEL,
+            )
+            ticks.set_gid("newton_steps")
+
+
+_HISTORY_LEVELS = 8
+"""The history panel shows at most this many mesh levels, the last ones (adaptive loops)."""
+
+
+def _last_levels(history: dict):
+    """Keep the rows of the last ``_HISTORY_LEVELS`` mesh levels; return them and a title suffix.
+
+    A solve to a tolerance records every mesh of the loop (20 or more
+    levels): drawn at once, the early levels crowd into the left edge.  Its
+    per-mesh totals are the adaptivity panel; the history panel keeps the
+    last levels, with the cumulative CG count of the whole solve as x.
+    """
+    if "level" not in history:
+        return history, ""
+    level = _column(history, "level")
+    levels = np.unique(level[np.isfinite(level)])
+    if levels.size <= _HISTORY_LEVELS:
+        return history, ""
+    keep = level >= levels[-_HISTORY_LEVELS]
+    cut = {k: np.ravel(v)[keep[: len(np.ravel(v))]] for k, v in history.items()}
+    return cut, f"\n(last {_HISTORY_LEVELS} of {levels.size} mesh levels)"
 
 
 def plot_history(result, ax=None):
@@ -167,15 +338,16 @@ def plot_history(result, ax=None):
     ----------
     result : fastmem.Result
         The result; only ``result.history`` (a dict of 1-D columns,
-        :mod:`fastmem.solver.history`) is used, the same way for every method: the
-        estimator columns ``eta``, ``eta_disc``, ``eta_lin`` and ``eta_alg``
-        that are present are drawn against the cumulative number of inner
-        iterations ``inner_total`` (against the row number when no CG ran,
-        method ``"exact"``), with a dotted vertical line where ``k`` changes
-        (a new Newton step begins, CG methods only) and a dashed one where the
-        mesh ``level`` changes.  A history without any estimator value (an
-        archive of an older version) shows ``comp_norm`` and ``res_norm``
-        against the row number instead.
+        :mod:`fastmem.solver.history`) is used, the same way for every method:
+        the estimator columns ``eta``, ``eta_disc``, ``eta_lin`` and
+        ``eta_alg`` that are present are drawn against the cumulative number
+        of inner iterations ``inner_total`` (against the row number when no
+        CG ran, method ``"exact"``).  Values of ``eta_disc`` that were
+        predicted rather than computed (``fresh_disc`` 0) are hollow markers.
+        Every other mesh level is shaded; small triangles on the top edge
+        mark where a Newton step starts (CG methods).  A history without any
+        estimator value (an archive of an older version) shows ``comp_norm``
+        and ``res_norm`` against the row number instead.
     ax : matplotlib.axes.Axes, optional
         Axes to draw on.  By default a new standalone figure with one axes is
         created.
@@ -184,7 +356,8 @@ def plot_history(result, ax=None):
     -------
     matplotlib.axes.Axes
         The axes drawn on.  Each curve is a :class:`~matplotlib.lines.Line2D`
-        whose ``gid`` is its history column name.
+        whose ``gid`` is its history column name (``eta_disc_predicted`` for
+        the predicted values).
 
     Raises
     ------
@@ -193,42 +366,30 @@ def plot_history(result, ax=None):
 
     Notes
     -----
-    NaN, infinite, zero and negative values cannot be shown on a log axis: they
-    are left out, per curve (estimators are NaN where they were not
-    evaluated).  A curve without any positive finite value is not drawn; a
-    history without any plottable column gives an axes saying so.
+    NaN, infinite, zero and negative values cannot be shown on a log axis:
+    they are left out, per curve.  So are components more than three decades
+    below the smallest bound ``eta`` (round-off after a direct coarse
+    solve, for example), which would squeeze the useful range; the legend
+    counts them.  The y limits fit the values drawn.  A history without any
+    plottable column gives an axes saying so.
     """
     _require_matplotlib()
     from matplotlib.ticker import MaxNLocator
 
-    if ax is None:
-        ax = _new_figure((6.4, 4.8)).add_subplot()
-    history = result.history or {}
+    ax = _one_axes(ax, (6.4, 4.8))
+    history, shown = _last_levels(result.history or {})
     ax.set_yscale("log")
     n_rows = max((len(np.ravel(v)) for v in history.values()), default=0)
     by_inner = (
         "inner_total" in history and np.nanmax(_column(history, "inner_total"), initial=0) > 0
     )
     x = _column(history, "inner_total") if by_inner else np.arange(1.0, n_rows + 1.0)
-    drawn = _plot_curves(ax, history, x, _ESTIMATOR_CURVES)
+    drawn = _plot_curves(ax, history, x, _ESTIMATOR_CURVES, floor=_shown_floor(history))
     if drawn:
-        starts, new_level = _newton_step_starts(history, x)
-        labelled = set()
-        for start, level in zip(starts, new_level, strict=True):
-            if not (level or by_inner):  # one row per Newton step: no line per step
-                continue
-            label = _LEVEL_LABEL if level else _NEWTON_STEP_LABEL
-            ax.axvline(
-                start,
-                color="0.3" if level else "0.5",
-                linestyle="--" if level else ":",
-                linewidth=1.0,
-                label="_nolegend_" if label in labelled else label,
-            )
-            labelled.add(label)
-        ax.set_xlabel("cumulative inner iterations" if by_inner else "history row (Newton step)")
+        _mark_levels_and_steps(ax, history, x, by_inner=by_inner)
+        ax.set_xlabel("CG iterations so far (all levels)" if by_inner else "Newton step")
         ax.set_ylabel("error estimator")
-        ax.set_title("a posteriori estimators")
+        ax.set_title(f"error estimators during the solve{shown}", pad=10)
     else:  # histories written before the estimators were recorded for every method
         drawn = _plot_curves(ax, history, x, _NEWTON_CURVES)
         ax.set_xlabel("Newton step $k$")
@@ -236,27 +397,74 @@ def plot_history(result, ax=None):
         ax.set_title("Newton-min convergence")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     if drawn:
-        ax.legend(fontsize="small")
+        _fit_log_range(ax, drawn)
+        # below the axes: the curves fill the panel from corner to corner
+        ax.legend(fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, -0.13), ncols=2)
         ax.grid(True, which="major", alpha=0.3)
     else:
-        ax.text(
-            0.5,
-            0.5,
-            "no plottable history",
-            transform=ax.transAxes,
-            ha="center",
-            va="center",
-            color="0.4",
-        )
+        _no_data(ax, "no plottable history")
     return ax
+
+
+def _no_data(ax, text: str) -> None:
+    ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", color="0.4")
+
+
+def _triangulation(mesh):
+    from matplotlib.tri import Triangulation
+
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    return Triangulation(v[:, 0], v[:, 1], np.asarray(mesh.triangles))
+
+
+def _decorate(ax, title: str) -> None:
+    ax.set_title(title)
+    ax.set_aspect("equal")
+    ax.set_xlabel("$x$")
+    ax.set_ylabel("$y$")
+
+
+def _draw_contact(ax, tri, active: np.ndarray, *, fill: bool) -> None:
+    """Outline the contact set (and fill it, translucent) on a panel; add its legend entry.
+
+    The contact set is drawn as the region where the piecewise-linear
+    indicator of the contact vertices exceeds 1/2: its outline runs halfway
+    between contact and free vertices, and it reads the same on uniform and
+    adapted meshes (per-vertex dots made a moiré on fine meshes).  The contour
+    set has gid ``"active"``.
+    """
+    from matplotlib.patches import Patch
+
+    n_active = int(active.sum())
+    label = f"contact set ({n_active} vertices)"
+    if 0 < n_active < active.size:
+        indicator = active.astype(np.float64)
+        if fill:
+            filled = ax.tricontourf(
+                tri, indicator, levels=[0.5, 1.5], colors=[_CONTACT_COLOUR], alpha=0.3
+            )
+            filled.set_gid("active")
+        outline = ax.tricontour(
+            tri, indicator, levels=[0.5], colors=[_CONTACT_COLOUR], linewidths=1.2
+        )
+        if not fill:
+            outline.set_gid("active")
+    proxy = Patch(
+        facecolor=_CONTACT_COLOUR if fill else "none",
+        alpha=0.6 if fill else 1.0,
+        edgecolor=_CONTACT_COLOUR,
+        linewidth=1.2,
+        label=label,
+    )
+    ax.legend(handles=[proxy], loc="upper right", fontsize="small", framealpha=0.85)
 
 
 def plot_solution(result, axes=None):
     """Draw the two membranes and the contact set of a result.
 
     Three panels: ``u1`` and ``u2`` (Gouraud-shaded, with colorbars) and the
-    gap ``u1 - u2`` (with a colorbar) with the contact vertices
-    (``result.active``) marked by dots.
+    gap ``u1 - u2`` (with a colorbar) with the contact set
+    (``result.active``) filled in translucent cyan and outlined, with a legend.
 
     Parameters
     ----------
@@ -271,8 +479,9 @@ def plot_solution(result, axes=None):
     Returns
     -------
     list of matplotlib.axes.Axes
-        The three axes drawn on.  The contact markers are a
-        :class:`~matplotlib.lines.Line2D` with ``gid`` ``"active"``.
+        The three axes drawn on.  The contact set is a contour set with
+        ``gid`` ``"active"`` (none when no vertex or every vertex is in
+        contact: there is no boundary to draw).
 
     Raises
     ------
@@ -282,42 +491,117 @@ def plot_solution(result, axes=None):
         If ``axes`` is not a sequence of three axes.
     """
     _require_matplotlib()
-    from matplotlib.tri import Triangulation
-
     axes = _axes_row(axes, 3, (15.0, 4.6), "plot_solution (u1, u2, gap)")
-    vertices = np.asarray(result.mesh.vertices, dtype=np.float64)
-    tri = Triangulation(vertices[:, 0], vertices[:, 1], np.asarray(result.mesh.triangles))
+    tri = _triangulation(result.mesh)
     u1 = np.asarray(result.u1, dtype=np.float64)
     u2 = np.asarray(result.u2, dtype=np.float64)
     active = np.asarray(result.active, dtype=bool)
-    n_active = int(active.sum())
     panels = (
         (u1, "$u_1$ (membrane 1)", "viridis"),
         (u2, "$u_2$ (membrane 2)", "viridis"),
-        (u1 - u2, f"gap $u_1 - u_2$, contact set: {n_active} vertices", "magma"),
+        (u1 - u2, "gap $u_1 - u_2$ and contact set", "magma"),
     )
     for ax, (values, title, cmap) in zip(axes, panels, strict=True):
         mappable = ax.tripcolor(tri, values, shading="gouraud", cmap=cmap)
         ax.figure.colorbar(mappable, ax=ax, shrink=0.9)
-        ax.set_title(title)
-        ax.set_aspect("equal")
-        ax.set_xlabel("$x$")
-        ax.set_ylabel("$y$")
-    # Dots about a third of the mesh spacing on a square mesh, within readable limits.
-    size = float(np.clip(150.0 / np.sqrt(max(len(vertices), 1)), 0.8, 5.0))
-    (dots,) = axes[2].plot(
-        vertices[active, 0],
-        vertices[active, 1],
-        linestyle="none",
-        marker="o",
-        markersize=size,
-        markerfacecolor="cyan",
-        markeredgecolor="black",
-        markeredgewidth=0.3,
-        label=f"contact set ({n_active} vertices)",
-    )
-    dots.set_gid("active")
+        _decorate(ax, title)
+    _draw_contact(axes[2], tri, active, fill=True)
     return axes
+
+
+def plot_contact_pressure(result, ax=None):
+    """Draw the contact pressure ``lam`` (the multiplier λ) with the outline of the contact set.
+
+    Parameters
+    ----------
+    result : fastmem.Result
+        The result; ``mesh``, ``lam`` and ``active`` are used.
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw on; a new standalone figure by default.
+
+    Returns
+    -------
+    matplotlib.axes.Axes
+        The axes.  The shading has gid ``"lam"``; the colour scale is linear
+        from 0 (λ ≥ 0 at a solution, and is 0 off the contact set).
+    """
+    _require_matplotlib()
+    ax = _one_axes(ax, (6.4, 4.8))
+    tri = _triangulation(result.mesh)
+    lam = np.asarray(result.lam, dtype=np.float64)
+    top = float(np.nanmax(lam)) if lam.size else 0.0
+    low = float(np.nanmin(lam)) if lam.size else 0.0
+    low = low if low < -1e-9 * abs(top) else 0.0  # round-off below 0 is not a scale
+    mappable = ax.tripcolor(
+        tri, lam, shading="gouraud", cmap="cividis", vmin=low, vmax=max(top, low + 1e-300)
+    )
+    mappable.set_gid("lam")
+    ax.figure.colorbar(mappable, ax=ax, shrink=0.9)
+    _draw_contact(ax, tri, np.asarray(result.active, dtype=bool), fill=False)
+    _decorate(ax, rf"contact pressure $\lambda$ (max {top:.3g})")
+    return ax
+
+
+def _indicator_scale(eta_k: np.ndarray):
+    """(norm, extend) of the colour scale of the indicators: log only where they span decades.
+
+    The scale runs over the meaningful values: those above 1e-8 of the
+    largest (contact interiors have zero error up to round-off), from their
+    1st to 99.5th percentile, so that a few extreme triangles do not flatten
+    the picture; the colorbar is extended where values lie beyond.
+    """
+    from matplotlib.colors import LogNorm, Normalize
+
+    top = float(eta_k.max()) if eta_k.size else 0.0
+    if not top > 0:
+        return Normalize(0.0, 1.0), "neither"
+    meaningful = eta_k[eta_k > top * 1e-8]
+    lo, hi = (float(v) for v in np.percentile(meaningful, [1.0, 99.5]))
+    extend_max = top > hi
+    if hi >= 100.0 * lo:
+        extend = "both" if extend_max else "min"
+        return LogNorm(vmin=lo, vmax=hi), extend
+    return Normalize(vmin=0.0, vmax=hi), "max" if extend_max else "neither"
+
+
+def plot_indicators(result, ax=None):
+    """Draw the error indicators ``eta_K`` per triangle (the refinement indicators).
+
+    Parameters
+    ----------
+    result : fastmem.Result
+        A result with an error estimate (``result.estimate`` holding the
+        per-triangle maps, ``fm.solve(..., estimate=True)``).
+    ax : matplotlib.axes.Axes, optional
+        Axes to draw on; a new standalone figure by default.
+
+    Returns
+    -------
+    matplotlib.axes.Axes
+        The axes.  The shading has gid ``"eta_K"`` and one value per
+        triangle.  Its colour scale is logarithmic only when the indicators
+        span two decades or more (see :func:`_indicator_scale`); a result
+        without indicators gives an axes saying so.
+    """
+    _require_matplotlib()
+    ax = _one_axes(ax, (6.4, 4.8))
+    est = result.estimate
+    if est is None or "eta_F1" not in est.maps:
+        _no_data(ax, "no error indicators\n(solve with estimate=True)")
+        ax.set_title(r"error indicators $\eta_K$")
+        ax.set_axis_off()
+        return ax
+    tri = _triangulation(result.mesh)
+    eta_k = np.sqrt(indicators(est))
+    norm, extend = _indicator_scale(eta_k)
+    values = eta_k
+    if norm.__class__.__name__ == "LogNorm":  # zeros (contact interiors) at the bottom colour
+        values = np.maximum(eta_k, norm.vmin)
+    coll = ax.tripcolor(tri, facecolors=values, cmap="inferno", norm=norm, antialiased=False)
+    coll.set_gid("eta_K")
+    ax.figure.colorbar(coll, ax=ax, shrink=0.9, extend=extend, label=r"$\eta_K$")
+    _decorate(ax, r"error indicators $\eta_K$ per triangle")
+    return ax
 
 
 def _uniform_points(uniform):
@@ -327,7 +611,6 @@ def _uniform_points(uniform):
     n = np.asarray(uniform["n_vertices"], dtype=np.float64).ravel()
     eta = np.asarray(uniform["eta"], dtype=np.float64).ravel()
     if n.shape != eta.shape:
-
         raise ParameterError(
             f"uniform needs n_vertices and eta of equal length, got {n.size} and {eta.size}"
         )
@@ -336,7 +619,7 @@ def _uniform_points(uniform):
 
 
 def plot_adaptivity(result, axes=None, *, uniform=None):
-    """Draw a solve to a tolerance: eta against N, and the adapted mesh with its indicators.
+    """Draw a solve to a tolerance: eta against N, and the final adapted mesh.
 
     Parameters
     ----------
@@ -356,7 +639,9 @@ def plot_adaptivity(result, axes=None, *, uniform=None):
     list of matplotlib.axes.Axes
         The two axes.  The curves have ``gid`` ``eta``, ``eta_disc``,
         ``eta_lin``, ``eta_alg``, ``target``, ``uniform`` and ``slope``; the
-        mesh collection ``mesh``.
+        mesh edges ``mesh`` (drawn thinner on larger meshes, so that refined
+        regions show as darker).  Components more than three decades below
+        the smallest ``eta`` are left out (counted in the legend).
 
     Raises
     ------
@@ -364,9 +649,6 @@ def plot_adaptivity(result, axes=None, *, uniform=None):
         If the result has no adaptivity table, or ``axes`` is not two axes.
     """
     _require_matplotlib()
-    from matplotlib.colors import LogNorm
-    from matplotlib.tri import Triangulation
-
 
     table = result.adaptivity
     if table is None:
@@ -374,48 +656,35 @@ def plot_adaptivity(result, axes=None, *, uniform=None):
     axes = _axes_row(axes, 2, (12.0, 5.0), "plot_adaptivity")
     ax, mesh_ax = axes
     n = np.asarray(table["n_vertices"], dtype=np.float64)
-    _plot_curves(ax, table, n, _ESTIMATOR_CURVES)
-    (line,) = ax.plot(n, table["target"], "k:", label="target")
+    drawn = _plot_curves(ax, table, n, _ESTIMATOR_CURVES, floor=_shown_floor(table))
+    (line,) = ax.plot(n, table["target"], "k:", label="tolerance")
     line.set_gid("target")
+    drawn.append(np.asarray(table["target"], dtype=np.float64))
     points = _uniform_points(uniform)
     if points is not None:
         (line,) = ax.plot(*points, "k--", marker="x", label=r"$\eta$, uniform refinement")
         line.set_gid("uniform")
+        drawn.append(points[1])
     if n.size:
         ref = table["eta"][0] * (n / n[0]) ** -0.5
-        (line,) = ax.plot(n, ref, color="0.6", linewidth=0.8, label=r"$N^{-1/2}$")
+        (line,) = ax.plot(n, ref, color="0.6", linewidth=0.8, label=r"slope $N^{-1/2}$")
         line.set_gid("slope")
     ax.set_xscale("log")
     ax.set_yscale("log")
+    drawn = [d[_positive(d)] for d in drawn]
+    _fit_log_range(ax, [d for d in drawn if d.size])
     ax.set_xlabel("vertices $N$")
-    ax.set_ylabel("estimator")
+    ax.set_ylabel("error estimator")
     ax.set_title(f"adaptive refinement: {n.size} meshes")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
-    v = np.asarray(result.mesh.vertices, dtype=np.float64)
-    tri = Triangulation(v[:, 0], v[:, 1], np.asarray(result.mesh.triangles))
-    if result.estimate is not None and "eta_F1" in result.estimate.maps:
-
-        eta_k = np.sqrt(indicators(result.estimate))
-        top = float(eta_k.max()) if eta_k.size else 0.0
-        lo = top * 1e-6 if top > 0 else 1.0  # six decades: the contact set has ~0
-        coll = mesh_ax.tripcolor(
-            tri,
-            facecolors=np.maximum(eta_k, lo),
-            cmap="viridis",
-            norm=LogNorm(vmin=lo, vmax=max(lo, top)),
-            edgecolors="face",
-        )
-        mesh_ax.figure.colorbar(coll, ax=mesh_ax, shrink=0.9, label=r"$\eta_K$")
-        title = "final mesh, indicators $\\eta_K$"
-    else:
-        coll = mesh_ax.triplot(tri, color="k", linewidth=0.2)[0]
-        title = "final mesh"
-    coll.set_gid("mesh")
-    if result.mesh.n_triangles <= 20_000:  # edges stay readable
-        mesh_ax.triplot(tri, color="w", linewidth=0.15, alpha=0.6)
-    mesh_ax.set_aspect("equal")
-    mesh_ax.set_title(f"{title} ({result.mesh.n_vertices} vertices)")
+    tri = _triangulation(result.mesh)
+    width = float(np.clip(40.0 / np.sqrt(max(result.mesh.n_triangles, 1)), 0.05, 0.6))
+    (edges,) = mesh_ax.triplot(tri, color="k", linewidth=width)[:1]
+    edges.set_gid("mesh")
+    _draw_contact(mesh_ax, tri, np.asarray(result.active, dtype=bool), fill=False)
+    mesh = result.mesh
+    _decorate(mesh_ax, f"final mesh: {mesh.n_vertices} vertices, {mesh.n_triangles} triangles")
     return axes
 
 
@@ -437,7 +706,6 @@ def _image_format(path: Path, fig) -> str:
     fmt = path.suffix[1:].lower() or "png"
     supported = fig.canvas.get_supported_filetypes()
     if fmt not in supported:
-
         raise ParameterError(
             f"cannot save plot as {path}: image format {fmt!r} is not supported; "
             f"use one of {', '.join('.' + s for s in sorted(supported))}"
@@ -445,14 +713,22 @@ def _image_format(path: Path, fig) -> str:
     return fmt
 
 
-def plot_result(result, path=None, *, show: bool = False, uniform=None):
-    """Draw the history and the solution of a result in one figure; optionally save it.
+def _check_dpi(dpi) -> float:
+    if isinstance(dpi, bool) or not isinstance(dpi, (int, float)) or not 10 <= dpi <= 1200:
+        raise ParameterError(f"dpi must be a number between 10 and 1200, got {dpi!r}")
+    return float(dpi)
 
-    The figure has four panels: the convergence history (:func:`plot_history`)
-    and ``u1``, ``u2`` and the gap with the contact set
-    (:func:`plot_solution`), plus one colorbar per solution panel; a solve to
-    a tolerance adds the two panels of :func:`plot_adaptivity` (``uniform``
-    is passed on to it).
+
+def plot_result(result, path=None, *, show: bool = False, uniform=None, dpi=150):
+    """Draw the history, the solution and the error indicators of a result; optionally save it.
+
+    Six panels in three rows: the convergence history (:func:`plot_history`)
+    and the gap with the contact set; ``u1`` and ``u2``
+    (:func:`plot_solution`); the contact pressure
+    (:func:`plot_contact_pressure`) and the error indicators
+    (:func:`plot_indicators`).  A solve to a tolerance adds a fourth row,
+    the two panels of :func:`plot_adaptivity` (``uniform`` is passed on to
+    it).
 
     Parameters
     ----------
@@ -468,6 +744,10 @@ def plot_result(result, path=None, *, show: bool = False, uniform=None):
         (``plt.show()``, blocking) after saving.  Otherwise the figure is a
         standalone figure on the non-interactive Agg canvas, not registered
         with pyplot (Jupyter still displays it when it is the cell's value).
+    uniform : dict, optional
+        See :func:`plot_adaptivity`.
+    dpi : float, default 150
+        Resolution of a raster image (the figure is 12 inches wide).
 
     Returns
     -------
@@ -479,12 +759,13 @@ def plot_result(result, path=None, *, show: bool = False, uniform=None):
     ImportError
         If matplotlib is not installed.
     fastmem.errors.ParameterError
-        If the suffix of ``path`` is not an image format matplotlib can write.
+        If the suffix of ``path`` is not an image format matplotlib can write,
+        or ``dpi`` is not a number in [10, 1200].
     OSError
         If ``path`` cannot be written (e.g. its folder does not exist).
     """
     _require_matplotlib()
-    fig = _draw_result(result, path, pyplot=show, uniform=uniform)
+    fig = _draw_result(result, path, pyplot=show, uniform=uniform, dpi=_check_dpi(dpi))
     if show:
         import matplotlib.pyplot as plt
 
@@ -492,22 +773,23 @@ def plot_result(result, path=None, *, show: bool = False, uniform=None):
     return fig
 
 
-def _draw_result(result, path, *, pyplot: bool, uniform=None):
+def _draw_result(result, path, *, pyplot: bool, uniform=None, dpi: float = 150.0):
     """Draw the figure of :func:`plot_result` and save it; do not show it."""
-    rows = 2 if result.adaptivity is None else 3
-    fig = _new_figure((12.0, 4.75 * rows), pyplot=pyplot)
+    rows = 3 if result.adaptivity is None else 4
+    fig = _new_figure((12.0, 4.6 * rows), pyplot=pyplot)
     try:
         target = None if path is None else Path(os.fspath(path))
         fmt = None if target is None else _image_format(target, fig)
-        plot_history(result, ax=fig.add_subplot(rows, 2, 1))
-        plot_solution(result, axes=[fig.add_subplot(rows, 2, i) for i in (2, 3, 4)])
-        if rows == 3:
-            plot_adaptivity(
-                result, axes=[fig.add_subplot(3, 2, i) for i in (5, 6)], uniform=uniform
-            )
+        panel = [fig.add_subplot(rows, 2, i + 1) for i in range(2 * rows)]
+        plot_history(result, ax=panel[0])
+        plot_solution(result, axes=[panel[2], panel[3], panel[1]])
+        plot_contact_pressure(result, ax=panel[4])
+        plot_indicators(result, ax=panel[5])
+        if rows == 4:
+            plot_adaptivity(result, axes=panel[6:8], uniform=uniform)
         fig.suptitle(_suptitle(result))
         if target is not None:
-            fig.savefig(target, format=fmt, dpi=150)
+            fig.savefig(target, format=fmt, dpi=dpi)
             logger.info("wrote plot %s", target)
     except BaseException:
         if pyplot:
@@ -553,6 +835,9 @@ def add_parser(subparsers):
     )
     p.add_argument("--show", action="store_true", help="also open the figure in a window")
     p.add_argument(
+        "--dpi", type=float, default=150.0, help="resolution of a raster image (default 150)"
+    )
+    p.add_argument(
         "--uniform",
         type=Path,
         nargs="+",
@@ -573,6 +858,18 @@ def _out(text: str) -> None:
 def _error(text: str) -> int:
     sys.stderr.write(f"fastmem: error: {text}\n")
     return 2
+
+
+def _study_of_index(path: Path):
+    """Return the study folder when ``path`` is the index file of a sweep study, else None."""
+    if path.name == INDEX_NAME and path.is_file():
+        return path.parent
+    try:
+        with h5py.File(path, "r") as f:
+            is_index = str(f.attrs.get("format", "")) == INDEX_FORMAT
+    except (OSError, ValueError):  # not HDF5, missing: load() says so
+        return None
+    return path.parent if is_index else None
 
 
 def run_plot(args) -> int:
@@ -604,6 +901,14 @@ def run_plot(args) -> int:
     except ImportError as exc:
         return _error(str(exc))
 
+    study = _study_of_index(Path(args.file))
+    if study is not None:
+        return _error(
+            f"{args.file} is the index of the sweep study {study}, not a result archive; "
+            f"plot the study with: fastmem plot {study} --x PARAMETER --y COLUMN "
+            f"(fastmem sweep --status {study} shows its runs), "
+            f"or plot one run's archive from {study}"
+        )
     result = load(args.file)
     uniform = None
     if getattr(args, "uniform", None):
@@ -619,7 +924,13 @@ def run_plot(args) -> int:
         }
     output = args.output if args.output is not None else Path(args.file).with_suffix(".png")
     try:
-        _draw_result(result, output, pyplot=args.show, uniform=uniform)
+        _draw_result(
+            result,
+            output,
+            pyplot=args.show,
+            uniform=uniform,
+            dpi=_check_dpi(getattr(args, "dpi", 150.0)),
+        )
     except FastmemError:
         raise
     except OSError as exc:

@@ -4,7 +4,11 @@
 (:func:`read_study`) with :func:`fastmem.sweeps.study.sweep` and shows a live table:
 one line per finished run with the counts of finished, failed, running and
 remaining runs, the elapsed time and an estimate of the time left (ETA).
-Running the same command again completes only the missing runs.
+Running the same command again completes only the missing runs; the grid is
+checked run by run before any worker starts, and dask's own log lines stay
+off the console (warnings are printed under their logger's name).  A study
+folder (or another folder, or an archive) given instead of the study file
+gets a pointer to the command that was probably meant.
 ``fastmem sweep --status study/`` summarises a study from its index (it
 needs neither dask nor pandas, and works while a sweep is running).
 ``fastmem plot study/ --x mu2 --y contact_fraction`` draws a column of the
@@ -43,6 +47,7 @@ study folder.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib
 import json
@@ -54,7 +59,7 @@ from pathlib import Path
 
 from ..errors import FastmemError, InputTypeError, ParameterError
 from ..sweeps.study import INDEX_NAME, TABLE_COLUMNS, load_sweep, sweep, sweep_status
-from .plot import _image_format, _new_figure, _require_matplotlib
+from .plot import _image_format, _new_figure, _require_matplotlib, column_label
 
 try:
     import tomllib
@@ -198,6 +203,68 @@ def read_study(path) -> dict:
     }
 
 
+def _study_files_of(folder: Path) -> list:
+    """Return the study files (beside or in ``folder``) whose ``out`` is ``folder``."""
+    found = []
+    target = folder.resolve()
+    candidates = [*sorted(folder.parent.glob("*.toml")), *sorted(folder.glob("*.toml"))]
+    for path in candidates[:50]:
+        try:
+            with open(path, "rb") as fh:
+                head = tomllib.load(fh).get("sweep", {})
+            out = head.get("out", path.stem)
+            if (path.resolve().parent / out).resolve() == target:
+                found.append(path)
+        except (OSError, ValueError, TypeError, AttributeError):  # not a study file
+            continue
+    return found
+
+
+def _not_a_study_file(target: Path):
+    """Return the pointer to the right command for a target that is not a study file, or None.
+
+    A study folder (or its index) gets the commands that read a finished study
+    and the command that completes it; an archive, the commands for archives;
+    another folder, the study files in it.
+    """
+    folder = target
+    if target.is_file():
+        if target.suffix.lower() not in (".h5", ".hdf5"):
+            return None
+        if target.name != INDEX_NAME:
+            return (
+                f"{target} is an HDF5 file, not a study file (TOML): for a result archive use "
+                f"`fastmem info {target}` or `fastmem plot {target}`"
+            )
+        folder = target.parent
+    elif not target.is_dir():
+        return None
+    if (folder / INDEX_NAME).is_file():
+        files = _study_files_of(folder) if tomllib is not None else []
+        again = (
+            f"`fastmem sweep {files[0]}`"
+            if len(files) == 1
+            else "`fastmem sweep STUDY.toml` with the study file that made it"
+        )
+        what = "a sweep study" if folder is target else f"the index of the sweep study {folder}"
+        return (
+            f"{target} is {what}, not a study file: `fastmem sweep --status {folder}` "
+            f"summarises it, `fastmem plot {folder} --x PARAMETER --y COLUMN` plots its table "
+            f"(fastmem.load_sweep reads it), `fastmem info {folder / 'runs'}/<run>.h5` shows "
+            f"one run; {again} completes its missing runs"
+        )
+    files = sorted(folder.glob("*.toml"))
+    if files:
+        return (
+            f"{target} is a folder, not a study file: give one of its study files, e.g. "
+            f"`fastmem sweep {files[0]}`"
+        )
+    return (
+        f"{target} is a folder, not a study file: fastmem sweep runs the sweep a TOML file "
+        "describes ([sweep], [solve] and [grid] tables; docs/sweeps.md, Command line)"
+    )
+
+
 # ----------------------------------------------------------------------------- live table
 
 
@@ -314,7 +381,40 @@ def run_sweep_command(args) -> int:
         return _error(str(exc))
 
 
+@contextlib.contextmanager
+def _named_dask_records():
+    """Print distributed's log records as ``distributed.nanny: WARNING: ...`` for the block.
+
+    The ``fastmem`` command's root handler writes ``fastmem: LEVEL: ...``, which
+    would make dask's lines look like fastmem's own; they are written here under
+    the name of their logger instead (the sweep lets WARNING and above through,
+    :mod:`fastmem.sweeps.engine`).  distributed's own handler, where it installed
+    one (no root handler when it was imported), is left alone.
+    """
+    try:
+        import distributed  # noqa: F401 - its import decides where its records go
+    except ImportError:  # the sweep reports the missing extra
+        yield
+        return
+    log = logging.getLogger("distributed")
+    if not log.propagate:
+        yield
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(name)s: %(levelname)s: %(message)s"))
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        yield
+    finally:
+        log.removeHandler(handler)
+        log.propagate = True
+
+
 def _run(args) -> int:
+    hint = _not_a_study_file(args.target)
+    if hint is not None:
+        raise ParameterError(hint)
     study = read_study(args.target)
     overrides = {
         "out": args.out,
@@ -325,7 +425,8 @@ def _run(args) -> int:
     study.update({k: v for k, v in overrides.items() if v is not None})
     progress = _Progress(not args.quiet, study["out"])
     try:
-        table = sweep(**study, progress=progress)
+        with _named_dask_records():
+            table = sweep(**study, progress=progress)
     except KeyboardInterrupt:
         _out(
             f"\ninterrupted: finished runs are kept in {study['out']}; run the same command "
@@ -345,6 +446,17 @@ def _run(args) -> int:
 
 
 def _status(folder) -> int:
+    folder = Path(folder)
+    if folder.is_file() and folder.suffix.lower() == ".toml":
+        out = folder.stem
+        with contextlib.suppress(FastmemError, ImportError, AttributeError):
+            out = _toml(folder).get("sweep", {}).get("out", out)
+        raise ParameterError(
+            f"--status reads a study folder, not its study file {folder}: "
+            f"`fastmem sweep --status {folder.parent / str(out)}`"
+        )
+    if folder.is_file() and folder.name == INDEX_NAME:
+        folder = folder.parent  # the index names its study
     s = sweep_status(folder)
     _out(f"{folder}: fastmem sweep study (index updated {s['updated']})")
     _out(f"  factory           {s['spec'].get('factory')}")
@@ -394,6 +506,18 @@ def _log_if_wide(axis_set, values) -> None:
         axis_set("log")
 
 
+def _short(name: str) -> str:
+    """Return the words of a column's label, without the symbol or the parenthesis."""
+    label = column_label(name)
+    return label.split(" (", 1)[0].split(" $", 1)[0]
+
+
+def _symbol(name: str) -> str:
+    r"""Return a parameter as a legend writes it: ``mu2`` as $\mu_2$, others as they are."""
+    symbols = {"mu1": r"$\mu_1$", "mu2": r"$\mu_2$", "f1": "$f_1$", "f2": "$f_2$"}
+    return symbols.get(name, name)
+
+
 def plot_sweep(study, x, y, out=None, *, ax=None):
     """Draw a column of a sweep table against a parameter.
 
@@ -440,16 +564,18 @@ def plot_sweep(study, x, y, out=None, *, ax=None):
     for key, group in groups:
         group = group.sort_values(x)
         key = key if isinstance(key, tuple) else (key,)
-        label = ", ".join(f"{k}={v}" for k, v in zip(others, key, strict=True)) or None
+        label = ", ".join(f"{_symbol(k)} = {v}" for k, v in zip(others, key, strict=True)) or None
         ax.plot(group[x].to_numpy(), group[y].to_numpy(dtype=float), "o-", label=label)
     if not done.empty and x not in TABLE_COLUMNS[1:] and done[x].dtype.kind in "iuf":
         _log_if_wide(ax.set_xscale, done[x])
     _log_if_wide(ax.set_yscale, done[y])
-    ax.set_xlabel(x)
-    ax.set_ylabel(y)
+    ax.set_xlabel(column_label(x))
+    ax.set_ylabel(column_label(y))
     left_out = len(table) - len(done)
     note = f" ({left_out} runs not finished or failed: not shown)" if left_out else ""
-    ax.set_title(f"{Path(os.fspath(study)).name}: {y} against {x}{note}", fontsize="medium")
+    name = Path(os.fspath(study)).name
+    title = f"{_short(y)} against {_symbol(x)} (study {name}/, {len(done)} runs){note}"
+    ax.set_title(title, fontsize="medium")
     if others:
         ax.legend(fontsize="small")
     ax.grid(True, alpha=0.3)

@@ -1,10 +1,15 @@
 """Compile (or load from Numba's cache) the kernels a solve needs, before the solve.
 
 The first run of fastmem after an install compiles its Numba kernels (about
-7 s on 2 cores); later runs load them from the on-disk cache (``cache=True``)
-in a fraction of a second.  :func:`warm_up` does that work on a tiny problem of
-the same kind, so that a caller (the ``fastmem run`` command, a benchmark) can
-say what is happening and time the solve apart from the compilation.
+7 s on 2 cores for a default ``fastmem run``, mesh kernels included); later runs
+load them from the on-disk cache (``cache=True``) in a fraction of a second.
+The first use of another feature (a solve to a tolerance, another method, a
+mesh read from a file, callable loads) compiles the kernels only it uses, once
+(about 5 s more for the refinement kernels of a solve to a tolerance).
+:func:`warm_up` does that work on a tiny problem of the same kind, so that a
+caller (the ``fastmem run`` command, a benchmark) can say what is happening and
+time the solve apart from the compilation; :class:`KernelMeter` counts and
+times what Numba does in other code (``fastmem run`` builds its mesh meanwhile).
 
 Compiling is single-threaded Python work in Numba, and the flux patch kernel
 is half of it.  With an empty cache and a second core, :func:`warm_up`
@@ -28,13 +33,15 @@ import subprocess
 import sys
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
+from numba.core import event
 from numba.core.dispatcher import Dispatcher
 
 from .. import kernels
-from ..errors import ParameterError
+from ..errors import ParameterError, checked_keywords
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, topology
 from ..kernels import flux as _kflux
@@ -46,7 +53,7 @@ from ..solver.options import METHODS
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["WarmUp", "kernels_cached", "warm_up"]
+__all__ = ["KernelMeter", "WarmUp", "kernels_cached", "warm_up"]
 
 
 @dataclass(frozen=True)
@@ -70,10 +77,12 @@ class WarmUp:
     helper: bool = False
 
     def __str__(self) -> str:
-        what = f"compiled {self.compiled}" if self.compiled else "none compiled"
+        what = f"{self.compiled} compiled"
         if self.helper:
-            what += " here, the flux kernel in a helper process"
-        return f"{self.seconds:.2f} s ({what}, {self.loaded} loaded from cache)"
+            what += " here, the flux kernel in a helper process;"
+        else:
+            what += ","
+        return f"{self.seconds:.2f} s ({what} {self.loaded} loaded from cache)"
 
 
 def _dispatchers() -> list:
@@ -94,6 +103,49 @@ def _counts(dispatchers) -> tuple[int, int]:
         hits += sum(stats.cache_hits.values())
         misses += sum(stats.cache_misses.values())
     return hits, misses
+
+
+class KernelMeter:
+    """What Numba does for fastmem's kernels from the meter's creation on.
+
+    ``compiled`` and ``loaded`` count the kernel specialisations compiled and
+    loaded from Numba's cache since then (as :class:`WarmUp` does), in any code;
+    :meth:`timing` adds the seconds Numba spends compiling inside a ``with``
+    block to ``compile_seconds`` (Numba's ``"numba:compile"`` events, nested
+    compilations counted once), so that a caller can book the compilation of
+    kernels its own work triggers (``fastmem run``: building the mesh) as
+    compilation, and the rest as that work.
+
+    Parameters
+    ----------
+    dispatchers : list of numba dispatchers, optional
+        The kernels to count (default: every kernel of :mod:`fastmem.kernels`).
+    """
+
+    def __init__(self, dispatchers=None):
+        self._dispatchers = _dispatchers() if dispatchers is None else list(dispatchers)
+        self._start = _counts(self._dispatchers)
+        self.compile_seconds = 0.0
+
+    @property
+    def compiled(self) -> int:
+        """Kernel specialisations compiled since the meter was created."""
+        return _counts(self._dispatchers)[1] - self._start[1]
+
+    @property
+    def loaded(self) -> int:
+        """Kernel specialisations loaded from Numba's cache since the meter was created."""
+        return _counts(self._dispatchers)[0] - self._start[0]
+
+    @contextmanager
+    def timing(self):
+        """Add the seconds Numba spends compiling inside the block to ``compile_seconds``."""
+
+        def add(seconds: float) -> None:
+            self.compile_seconds += seconds
+
+        with event.install_timer("numba:compile", add):
+            yield self
 
 
 def kernels_cached(which: str = "pipeline") -> bool | None:
@@ -283,6 +335,7 @@ def _precompile_locate() -> None:
     locate(coarse, coarse.vertices)
 
 
+@checked_keywords("fastmem.warm_up")
 def warm_up(
     method: str = "inexact",
     *,
@@ -319,7 +372,6 @@ def warm_up(
     callable loads are compiled by the scene that uses them, on first use.
     """
     if method not in METHODS:
-
         raise ParameterError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
 
     dispatchers = _dispatchers()

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from ..errors import DataError, InputTypeError, ParameterError
+from ..errors import DataError, InputTypeError, ParameterError, checked_keywords
 from ..fem.quadrature import quadrature_points, triangle_rule
 from ..fem.residual import residuals
 from ..fem.scene import Scene
@@ -81,6 +81,7 @@ def _flux_terms_reference(scene, u1, u2, fluxes: Fluxes):
     return out[0], out[1]
 
 
+@checked_keywords("fastmem.estimate")
 def estimate(scene: Scene, u1, u2, lam, r1=None, r2=None) -> Estimate:
     r"""Guaranteed upper bound :math:`\eta \ge |||u - u_h|||` for ANY triple (docs/method.md §5).
 

@@ -14,7 +14,13 @@ import numbers
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import DataError, InputTypeError, ParameterError, ReadOnlyError
+from ..errors import (
+    DataError,
+    InputTypeError,
+    ParameterError,
+    ReadOnlyError,
+    checked_keywords,
+)
 from ..mesh.mesh import Mesh
 from .assembly import DEFAULT_LOAD_DEGREE, assemble_stiffness, evaluate_callable
 from .loaddata import integrals
@@ -240,6 +246,7 @@ class Scene:
     True
     """
 
+    @checked_keywords("fastmem.Scene")
     def __init__(
         self,
         mesh: Mesh,

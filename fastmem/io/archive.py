@@ -33,9 +33,12 @@ checksum does not match is refused in every case, also after a change made
 with h5py: edit results in Python and save them again instead.
 
 Writes are atomic: the archive is written to a temporary file in the target
-folder (named ``.{name}.tmp-<random suffix>``), flushed to disk and renamed onto the
-final name.  If anything fails, the temporary file is removed and an archive
-already present under the final name is left untouched.
+folder (named ``.{name}.tmp-{host}-{pid}-<random suffix>``), flushed to disk and
+renamed onto the final name.  If anything fails, the temporary file is removed and
+an archive already present under the final name is left untouched.  A writer killed
+on the way (``kill -9``) cannot remove it; the next write of the same name does
+(:func:`fastmem.io.writer.remove_stale_temporaries`: only when that writer's
+process is gone, or after a day without change when it cannot be checked).
 
 Every problem with an archive raises :class:`~fastmem.errors.ArchiveError`
 (a subclass of :class:`OSError`) naming the file.  Reading treats the file as
@@ -63,7 +66,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..errors import ArchiveError, InputTypeError
+from ..errors import ArchiveError, InputTypeError, checked_keywords
 from ..mesh.mesh import Mesh
 from .result import Estimate, Result, check_result
 from .writer import (
@@ -331,6 +334,7 @@ def _attrs_dict(obj) -> dict:
 # ----------------------------------------------------------------------------- public: load, info
 
 
+@checked_keywords("fastmem.load")
 def load(path) -> Result:
     """Read a result archive written by :func:`save`.
 

@@ -15,8 +15,11 @@ import contextlib
 import json
 import logging
 import os
+import re
 import shutil
+import socket
 import tempfile
+import time
 import zlib
 from datetime import datetime, timezone
 from pathlib import Path
@@ -37,6 +40,7 @@ __all__ = [
     "fastmem_version",
     "check_output",
     "companion_files",
+    "remove_stale_temporaries",
     "write_archive",
     "write_export",
 ]
@@ -289,10 +293,113 @@ def _fsync_dir(folder: Path) -> None:
             os.close(fd)
 
 
+#: seconds without a change after which a temporary file of a writer that cannot be
+#: checked (another host, an older fastmem's name, no process check) counts as left behind
+STALE_AFTER = 24 * 3600.0
+
+
+def _host() -> str:
+    """Return the machine's name for temporary names: its letters and digits, at most 24."""
+    return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:24]
+
+
+def _temporary_prefix(target: Path) -> str:
+    """``.NAME.tmp-HOST-PID-``: whose temporary file it is, for :func:`remove_stale_temporaries`."""
+    return f".{target.name}.tmp-{_host()}-{os.getpid()}-"
+
+
+def _process_gone(pid: int) -> bool:
+    """Whether no process ``pid`` exists on this machine (False when that cannot be told)."""
+    if os.name != "posix":  # os.kill(pid, 0) would terminate the process on Windows
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # PermissionError: it exists, under another user
+        return False
+    return False
+
+
+def remove_stale_temporaries(target: Path, now: float | None = None) -> list[Path]:
+    """Remove the temporary files an interrupted writer of ``target`` left beside it.
+
+    A write of ``target`` goes to ``.NAME.tmp-HOST-PID-XXXXXXXX`` in the same
+    folder (``XXXXXXXX`` random, plus the export's suffix; a folder for an
+    XDMF export) and is renamed onto ``target`` when complete; a writer killed
+    on the way (``kill -9``, a power cut) leaves it there.  Removed here, before
+    the next write of the same ``target``: the entries of exactly that name
+    pattern whose writer, on this machine (``HOST``), is no longer running
+    (``PID``); and those that have not changed for :data:`STALE_AFTER` seconds
+    when the writer cannot be checked (another machine sharing the folder, the
+    names of older fastmem versions, ``.NAME.tmp-XXXXXXXX``, or a system
+    without the process check).  A running writer's file is left alone.
+    Failures to remove are ignored (the next write tries again).
+
+    Parameters
+    ----------
+    target : Path
+        The file about to be written.
+    now : float, optional
+        The current time (``time.time()``; for tests).
+
+    Returns
+    -------
+    list of Path
+        What was removed.
+    """
+    pattern = re.compile(
+        rf"\.{re.escape(target.name)}\.tmp-(?:([A-Za-z0-9]*)-([0-9]+)-)?[a-z0-9_]{{8}}(\.[A-Za-z0-9]+)?"
+    )
+    now = time.time() if now is None else now
+    host, removed = _host(), []
+    try:
+        entries = list(os.scandir(target.parent))
+    except OSError:
+        return removed
+    prefix = f".{target.name}.tmp-"
+    for entry in entries:
+        if not entry.name.startswith(prefix):  # (cheap first: a study folder holds many files)
+            continue
+        match = pattern.fullmatch(entry.name)
+        if match is None:
+            continue
+        owner, pid = match.group(1), match.group(2)
+        try:
+            if (
+                pid is not None
+                and owner == host
+                and int(pid) != os.getpid()
+                and _process_gone(int(pid))
+            ):
+                stale = True
+            else:
+                stale = now - entry.stat(follow_symlinks=False).st_mtime > STALE_AFTER
+            if not stale:
+                continue
+            if entry.is_dir(follow_symlinks=False):
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
+        except OSError as exc:
+            logger.debug("left %s in place: %s", entry.path, exc)
+            continue
+        removed.append(Path(entry.path))
+        logger.info("removed %s, left behind by an interrupted write of %s", entry.path, target)
+    return removed
+
+
 @contextlib.contextmanager
 def atomic_file(target: Path, suffix: str = ""):
-    """Yield a temporary path next to ``target``; rename it onto ``target`` on success."""
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.tmp-", suffix=suffix, dir=target.parent)
+    """Yield a temporary path next to ``target``; rename it onto ``target`` on success.
+
+    Temporary files that interrupted writes of ``target`` left behind are removed
+    first (:func:`remove_stale_temporaries`).
+    """
+    remove_stale_temporaries(target)
+    fd, tmp_name = tempfile.mkstemp(
+        prefix=_temporary_prefix(target), suffix=suffix, dir=target.parent
+    )
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -382,7 +489,8 @@ def _export_xdmf(mesh, target: Path) -> Path:
             raise ArchiveError(
                 f"refusing to export {target}: its data file {companion} is a fastmem archive"
             )
-    tmpdir = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
+    remove_stale_temporaries(target)
+    tmpdir = Path(tempfile.mkdtemp(prefix=_temporary_prefix(target), dir=target.parent))
     try:
         # meshio names the heavy-data file after the .xdmf file (suffix replaced by .h5)
         # and references it by basename, so write "<name>.xdmf" to get "<name>.h5".

@@ -76,6 +76,7 @@ from ..errors import (
     MeshWarning,
     ParameterError,
     ReadOnlyError,
+    checked_keywords,
 )
 from ..kernels import pool as _par
 from ..kernels import topology as _kt
@@ -237,6 +238,7 @@ class Mesh:
     (25, 32, 56)
     """
 
+    @checked_keywords("fastmem.Mesh")
     def __init__(self, vertices, triangles, *, orientation: str = "fix", validate: bool = True):
         _check_flags(orientation, validate)
         v = _as_vertices(vertices)

@@ -24,7 +24,7 @@ from dataclasses import fields
 import numpy as np
 
 from ..config import check_count
-from ..errors import InputTypeError, ParameterError
+from ..errors import FastmemError, InputTypeError, ParameterError
 from ..pipeline import solve
 from ..solver.options import (
     AdaptOptions,
@@ -257,6 +257,48 @@ def _check_signature(make_scene, runs) -> None:
                 f"run {i} {_canonical(params)}: {make_scene.__qualname__}() cannot take these "
                 f"parameters: {exc}"
             ) from None
+
+
+def _check_runs(make_scene, runs, shown: int = 3) -> None:
+    """Check every run with the factory's own checks, ``make_scene.validate``, if it has them.
+
+    A factory may carry a ``validate`` attribute: a function taking the same
+    keywords that raises for values the factory would refuse, without building
+    anything large (:func:`fastmem.sweeps.standard_scene` has one).  All runs
+    are checked; the error names the factory, how many runs it refuses and the
+    first ``shown`` of them with their reasons.  Its type is that of the first
+    refusal (:class:`ParameterError` or :class:`InputTypeError` for a plain
+    ``ValueError`` or ``TypeError``).
+    """
+    validate = getattr(make_scene, "validate", None)
+    if validate is None:
+        return
+    name = f"{make_scene.__qualname__}()"
+    if not callable(validate):
+        raise InputTypeError(
+            f"make_scene {make_scene.__qualname__}: its validate attribute must be a function "
+            f"taking the run's parameters, got {type(validate).__name__}"
+        )
+    refused = []
+    for i, params in enumerate(runs):
+        try:
+            validate(**params)
+        except (ValueError, TypeError) as exc:
+            refused.append((i, params, exc))
+    if not refused:
+        return
+    first = refused[0][2]
+    if isinstance(first, FastmemError):
+        error = type(first)
+    else:
+        error = InputTypeError if isinstance(first, TypeError) else ParameterError
+    lines = "; ".join(f"run {i} {_canonical(p)}: {exc}" for i, p, exc in refused[:shown])
+    more = f"; and {len(refused) - shown} more" if len(refused) > shown else ""
+    count = "the run" if len(runs) == 1 else f"{len(refused)} of the {len(runs)} runs"
+    raise error(
+        f"{name} refuses {count} of this grid (nothing has been started or written; fix "
+        f"the grid): {lines}{more}"
+    )
 
 
 def _check_solve_options(solve_options) -> dict:

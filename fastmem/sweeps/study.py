@@ -31,7 +31,8 @@ Rules (docs/sweeps.md has the reasons):
   the factory as keywords.  A run's identity is the canonical JSON of its
   parameters (keys sorted): the archive name is ``<readable fields>__<first 12
   hex digits of its SHA-256>.h5``, the same in every process and on every
-  machine.  ``1`` and ``1.0`` are different parameter values.
+  machine.  ``1`` and ``1.0`` are different parameter values.  A factory with
+  a ``validate`` attribute has every run checked by it before anything starts.
 * **Done.** A run is done when its archive exists, :func:`fastmem.load`
   validates it (fastmem's checksummed format) and it records the same
   parameters.  A sweep first checks this for every run (in the client) and
@@ -63,16 +64,28 @@ Rules (docs/sweeps.md has the reasons):
   :func:`fastmem.solve` limits BLAS to 1 in its solver phases anyway).  On an
   existing cluster each task sets Numba threads = cores of its host // task
   threads of all workers on that host (or ``numba_threads``).
+* **Workers and the main script.** LocalCluster workers are spawned and run
+  the main script again: a sweep from the top level of a script without an
+  ``if __name__ == "__main__":`` guard, or from a script read from stdin, is
+  refused up front (:mod:`fastmem.sweeps.spawn`).
+* **Quiet.** distributed's INFO log is off while the sweep's cluster or client
+  is open (WARNING and above pass), in the workers too, and the LocalCluster
+  has no dashboard (:mod:`fastmem.sweeps.engine`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import inspect
+import numbers
 import os
 import time
 import traceback
 import uuid
 from pathlib import Path
+
+import numpy as np
 
 from ..errors import InputTypeError, ParameterError
 from ..fem.scene import Scene
@@ -92,6 +105,7 @@ from .grid import MISSING_DASK as MISSING_DASK
 from .grid import RUNS_DIR as RUNS_DIR
 from .grid import TABLE_COLUMNS as TABLE_COLUMNS
 from .grid import WRITE_LOG as WRITE_LOG
+from .grid import _check_runs as _check_runs
 from .grid import _check_signature as _check_signature
 from .grid import _check_solve_options as _check_solve_options
 from .grid import _factory_name as _factory_name
@@ -106,6 +120,7 @@ from .index import _study_lock as _study_lock
 from .index import _write_index as _write_index
 from .index import load_sweep as load_sweep
 from .index import sweep_status as sweep_status
+from .spawn import check_main_script
 from .task import _failed_row as _failed_row
 from .task import _Job as _Job
 from .task import _pending_row as _pending_row
@@ -157,15 +172,56 @@ def standard_scene(
     Returns
     -------
     fastmem.Scene
+
+    Notes
+    -----
+    ``standard_scene.validate(**params)`` runs the same checks without building
+    the mesh (the mesh options as the generators check them, the data as
+    :class:`fastmem.Scene` does, on two triangles); :func:`sweep` calls it for
+    every run before anything starts.
     """
-    if domain not in ("square", "lshape"):
-        raise ParameterError(f"domain must be 'square' or 'lshape', got {domain!r}")
+    _check_mesh_options(n, domain, refine)
     mesh = Mesh.lshape(n) if domain == "lshape" else Mesh.square(n)
-    if isinstance(refine, bool) or not isinstance(refine, int) or refine < 0:
-        raise ParameterError(f"refine must be an integer >= 0, got {refine!r}")
     for _ in range(refine):
         mesh = mesh.refine()
     return Scene(mesh, mu=(mu1, mu2), f=(f1, f2), g=g)
+
+
+def _check_mesh_options(n, domain, refine) -> None:
+    """Check the mesh options of :func:`standard_scene` as the mesh generators do."""
+    if domain not in ("square", "lshape"):
+        raise ParameterError(f"domain must be 'square' or 'lshape', got {domain!r}")
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ParameterError(f"n must be a positive integer, got {n!r}")
+    if domain == "lshape" and n % 2:
+        raise ParameterError(f"n must be even for the L-shaped domain, got {n}")
+    if isinstance(refine, bool) or not isinstance(refine, int) or refine < 0:
+        raise ParameterError(f"refine must be an integer >= 0, got {refine!r}")
+
+
+@functools.lru_cache(maxsize=1)
+def _unit_square() -> Mesh:
+    """Two triangles on (-1, 1)^2: the mesh on which a run's scene data are checked."""
+    vertices = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    return Mesh(vertices, np.array([[0, 1, 2], [0, 2, 3]]))
+
+
+def _validate_standard_scene(**params) -> None:
+    """Check the parameters of a :func:`standard_scene` run without building its mesh.
+
+    ``standard_scene.validate``: :func:`sweep` calls it for every run before
+    anything starts.  The mesh options get the generators' checks; mu1, mu2,
+    f1, f2 and g the checks of :class:`fastmem.Scene`, on two triangles (data
+    that only a fine mesh puts out of range are still found by the run).
+    """
+    args = inspect.signature(standard_scene).bind(**params)
+    args.apply_defaults()
+    p = args.arguments
+    _check_mesh_options(p["n"], p["domain"], p["refine"])
+    Scene(_unit_square(), mu=(p["mu1"], p["mu2"]), f=(p["f1"], p["f2"]), g=p["g"])
+
+
+standard_scene.validate = _validate_standard_scene
 
 
 # ----------------------------------------------------------------------------- the sweep
@@ -214,7 +270,10 @@ def sweep(
     make_scene : function
         ``make_scene(**params) -> fastmem.Scene``, a function defined with
         ``def`` at the top level of a module (workers import it by name).
-        Lambdas, nested functions and other callables are refused.
+        Lambdas, nested functions and other callables are refused.  If it has
+        a ``validate`` attribute, a function of the same keywords that raises
+        for values the factory would refuse, every run is checked with it
+        first (:func:`standard_scene` has one).
     grid : dict or list of dict
         The runs (see :func:`expand_grid`).
     out : str or os.PathLike
@@ -251,8 +310,12 @@ def sweep(
     Raises
     ------
     InputTypeError, ParameterError
-        For an unusable factory, grid, solve options or folder, before anything
-        is created or started.
+        For an unusable factory, grid, solve options or folder, runs that
+        ``make_scene.validate`` refuses, or (``client=None``) a call from the
+        top level of a script without an ``if __name__ == "__main__":`` guard
+        or from a script read from standard input, whose worker processes
+        could not start (:mod:`fastmem.sweeps.spawn`); before anything is
+        created or started.
     ArchiveError
         If another sweep is running in ``out``.
     ImportError
@@ -267,6 +330,8 @@ def sweep(
     max_retries = _positive("max_retries", max_retries, allow_none=False)
     if progress is not None and not callable(progress):
         raise InputTypeError(f"progress must be callable, got {type(progress).__name__}")
+    _check_runs(make_scene, runs)
+    check_main_script(client)
     spec = {"factory": factory, "solve_options": options}
     folder = _study_folder(out, spec)
     _require_dask(), _require_pandas()

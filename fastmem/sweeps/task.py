@@ -196,7 +196,7 @@ def _solve_claimed(job: _Job, archive: Path, rel: str, claims: Path, holder: lis
     """Make, solve and save a run whose claim (``holder[0]``) this task holds; return its row."""
     _set_task_threads(job.threads)
     t0 = time.perf_counter()
-    stage = "make_scene"
+    stage = getattr(job.factory, "__qualname__", "the scene factory")  # its own name
     try:
         scene = job.factory(**job.params)
         if not isinstance(scene, Scene):

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import subprocess
 import sys
 
+import numba
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
@@ -292,3 +294,79 @@ def test_run_prints_the_bound_and_no_estimate_skips_it(tmp_path, capsys):
     argv = ["run", "--n", "8", "--no-save", "--no-estimate", "--method", "inexact"]
     assert main(argv) == 2
     assert "--no-estimate cannot be combined" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "command", "hint"),
+    [
+        pytest.param(["run", "--N", "64"], "run", "did you mean --n instead of --N?", id="run-N"),
+        pytest.param(
+            ["run", "--n", "4", "--gamma_alg", "0.2"],
+            "run",
+            "did you mean --gamma-alg instead of --gamma_alg?",
+            id="run-underscore",
+        ),
+        pytest.param(
+            ["run", "--tols=1e-3"], "run", "did you mean --tol instead of --tols?", id="eq"
+        ),
+        pytest.param(["info", "a.h5", "--jsn"], "info", "did you mean --json", id="info"),
+        pytest.param(["plot", "a.h5", "--dpii", "3"], "plot", "did you mean --dpi ", id="plot"),
+        pytest.param(
+            ["export", "a.h5", "b.vtu", "--force"],
+            "export",
+            "fastmem export --help lists the options",
+            id="nothing-close",
+        ),
+    ],
+)
+def test_unknown_option_is_refused_by_its_subcommand(capsys, argv, command, hint):
+    """The subcommand's usage and error, with the closest of its options (not the top level's)."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"usage: fastmem {command} "), err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"fastmem {command}: error: unrecognized arguments: "), last
+    assert hint in last
+
+
+def test_first_use_is_counted_and_said(capsys, monkeypatch):
+    """Kernels compiled while the mesh is built count as compiled; the note only then.
+
+    A kernel without a cache (compiled in every process) stands in for a mesh
+    kernel on its first use: the run after it has been compiled reports nothing
+    compiled and no note.
+    """
+    cli = importlib.import_module("fastmem.cli.main")
+    warmup = importlib.import_module("fastmem.cli.warmup")
+    argv = ["run", "--n", "4", "--no-save"]
+    assert main(argv) == 0  # everything this run needs is now in this process
+    capsys.readouterr()
+
+    @numba.njit
+    def probe(x):
+        return x + 1.0
+
+    kernels, build = warmup._dispatchers, cli._build_mesh
+
+    def building(args):
+        probe(1.0)
+        return build(args)
+
+    monkeypatch.setattr(warmup, "_dispatchers", lambda: [*kernels(), probe])
+    monkeypatch.setattr(cli, "_build_mesh", building)
+    monkeypatch.setattr(cli, "kernels_cached", lambda: True)
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    label = "  Numba kernels (loading from cache, compiling any not there) ... "
+    line = next(ln for ln in out.splitlines() if ln.startswith(label))
+    assert line.endswith(" s (1 compiled, 0 loaded from cache)"), line
+    assert cli.FIRST_USE_NOTE in out
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert "(0 compiled, 0 loaded from cache)" in out
+    assert "note:" not in out
+    monkeypatch.setattr(cli, "kernels_cached", lambda: False)
+    assert main(argv) == 0
+    assert "  compiling Numba kernels (first use) ... " in capsys.readouterr().out

@@ -75,13 +75,29 @@ def png_size(path):
     return struct.unpack(">II", data[16:24])
 
 
+MARKS = ("newton_steps",)
+
+
 def curves(ax):
-    """The history curves of an axes by column name (vertical step lines have no gid)."""
-    return {line.get_gid(): line for line in ax.lines if line.get_gid() is not None}
+    """The history curves of an axes by column name (not the Newton-step marks)."""
+    return {line.get_gid(): line for line in ax.lines if line.get_gid() not in MARKS}
 
 
-def step_lines(ax):
-    return [line for line in ax.lines if line.get_gid() is None]
+def step_marks(ax):
+    """x of the marks where a Newton step starts (none: empty)."""
+    marks = [line for line in ax.lines if line.get_gid() == "newton_steps"]
+    assert len(marks) <= 1
+    return list(marks[0].get_xdata()) if marks else []
+
+
+def level_bands(ax):
+    """(start, end) of the shaded mesh levels."""
+    bands = [p for p in ax.patches if p.get_gid() == "level"]
+    return [(float(b.get_x()), float(b.get_x() + b.get_width())) for b in bands]
+
+
+def legend_texts(ax):
+    return [t.get_text() for t in ax.get_legend().get_texts()]
 
 
 # ----------------------------------------------------------------------------- plot_result
@@ -93,14 +109,17 @@ def test_plot_result_writes_png(which, request, tmp_path):
     out = tmp_path / "fig.png"
     fig = plot.plot_result(result, out)
     assert out.stat().st_size > 10_000
-    assert png_size(out) == (1800, 1425)  # 12 x 9.5 inches at 150 dpi
-    # history + u1, u2, gap + one colorbar per solution panel
-    assert len(fig.axes) == 7
-    titles = [ax.get_title() for ax in fig.axes[:4]]
-    assert "u_1" in titles[1]
-    assert "u_2" in titles[2]
-    assert "gap" in titles[3]
-    assert f"{int(result.active.sum())} vertices" in titles[3]
+    assert png_size(out) == (1800, 2070)  # 12 x 13.8 inches at 150 dpi
+    # history, gap, u1, u2, lam, eta_K + one colorbar per field (no eta_K without estimate)
+    assert len(fig.axes) == 10
+    titles = [ax.get_title() for ax in fig.axes[:6]]
+    assert "estimators" in titles[0]
+    assert "gap" in titles[1]
+    assert "u_1" in titles[2]
+    assert "u_2" in titles[3]
+    assert "contact pressure" in titles[4]
+    assert "no error indicators" in fig.axes[5].texts[0].get_text()
+    assert legend_texts(fig.axes[1]) == [f"contact set ({int(result.active.sum())} vertices)"]
     assert fig.axes[0].get_yscale() == "log"
     assert f"method {result.method}" in fig._suptitle.get_text()
     # a standalone figure on the Agg canvas, not registered with pyplot
@@ -113,7 +132,7 @@ def test_plot_result_writes_png(which, request, tmp_path):
 def test_plot_result_without_path_writes_nothing(exact, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     fig = plot.plot_result(exact)
-    assert len(fig.axes) == 7
+    assert len(fig.axes) == 10
     assert list(tmp_path.iterdir()) == []
 
 
@@ -167,15 +186,15 @@ def test_history_exact(exact):
     drawn = [n for n in ESTIMATORS if (np.isfinite(h[n]) & (h[n] > 0)).any()]
     assert drawn == ["eta_lin", "eta_alg"]  # no flux without estimate=True
     assert list(lines) == drawn
-    assert step_lines(ax) == []
+    assert step_marks(ax) == []  # one row per Newton step: nothing to mark
+    assert level_bands(ax) == []  # one level
     rows = np.arange(1.0, len(h["k"]) + 1.0)
     for name, line in lines.items():
-        keep = np.isfinite(h[name]) & (h[name] > 0)
+        keep = np.isfinite(h[name]) & (h[name] > 0)  # no bound: nothing else left out
         assert_array_equal(line.get_xdata(), rows[keep])
         assert_array_equal(line.get_ydata(), h[name][keep])
-    assert "row" in ax.get_xlabel()
-    legend = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert legend == [line.get_label() for line in lines.values()]
+    assert ax.get_xlabel() == "Newton step"
+    assert legend_texts(ax) == [line.get_label() for line in lines.values()]
 
 
 def test_history_of_an_older_archive_shows_the_newton_norms(exact):
@@ -196,7 +215,7 @@ def test_history_adaptive(adaptive):
     assert ax.get_yscale() == "log"
     lines = curves(ax)
     assert list(lines) == ESTIMATORS
-    assert ax.get_xlabel() == "cumulative inner iterations"
+    assert ax.get_xlabel() == "CG iterations so far (all levels)"
     assert ax.get_ylabel()
     x = h["inner_total"].astype(float)
     for name in ESTIMATORS:
@@ -206,13 +225,12 @@ def test_history_adaptive(adaptive):
         assert lines[name].get_marker() not in (None, "", "None")
     assert len(lines["eta_lin"].get_xdata()) == 5  # two NaNs and one zero left out
     assert len(lines["eta"].get_xdata()) == 7
-    # dotted lines where k changes: after inner_total 15 (k 1 -> 2) and 25 (k 2 -> 3)
-    steps = step_lines(ax)
-    assert [line.get_xdata()[0] for line in steps] == [15.0, 25.0]
-    assert all(line.get_linestyle() == ":" for line in steps)
-    legend = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert legend == [lines[n].get_label() for n in ESTIMATORS] + ["new Newton step"]
-    assert ax.get_ylim()[0] > 0
+    # marks where k changes: after inner_total 15 (k 1 -> 2) and 25 (k 2 -> 3)
+    assert step_marks(ax) == [15.0, 25.0]
+    legend = legend_texts(ax)
+    assert legend == [lines[n].get_label() for n in ESTIMATORS] + ["a Newton step starts"]
+    # the y range is the range drawn (1e-3 ... 1.2), with a factor 2 of margin
+    assert_allclose(ax.get_ylim(), (1e-3 / 2, 1.2 * 2))
 
 
 @pytest.mark.parametrize("method", ["inexact", "exact-amg"])
@@ -226,14 +244,24 @@ def test_history_of_adaptive_solve(method):
     lines = curves(ax)
     drawn = [n for n in ESTIMATORS if n in h and (np.isfinite(h[n]) & (h[n] > 0)).any()]
     assert drawn
-    assert list(lines) == drawn
+    assert [n for n in lines if n != "eta_disc_predicted"] == drawn
+    predicted = (h["fresh_disc"] == 0) & np.isfinite(h["eta_disc"])
+    assert ("eta_disc_predicted" in lines) == bool(predicted.any())
     for name in drawn:
         assert np.isfinite(lines[name].get_ydata()).all()
         assert (lines[name].get_ydata() > 0).all()
-    steps = list(zip(h.get("level", h["k"] * 0), h["k"], strict=True))
-    n_new = sum(steps[i] != steps[i + 1] for i in range(len(steps) - 1))
-    assert n_new >= 1
-    assert len(step_lines(ax)) == n_new
+    level, k = h["level"], h["k"]
+    new_step = (k[1:] != k[:-1]) & (level[1:] == level[:-1])
+    assert new_step.any()
+    assert_array_equal(step_marks(ax), h["inner_total"][:-1][new_step])
+    # nothing drawn three decades or more below the smallest bound
+    bounds = h["eta"][np.isfinite(h["eta"])]
+    floor = bounds.min() * 1e-3 if bounds.size else 0.0  # exact-amg: no bound, none left out
+    for name in drawn:
+        assert (lines[name].get_ydata() >= floor).all()
+    low = (h["eta_alg"] > 0) & (h["eta_alg"] < floor)
+    label = lines["eta_alg"].get_label()
+    assert (f"{int(low.sum())} < " in label) == bool(low.any())
 
 
 def test_history_adaptive_missing_and_empty_columns(exact):
@@ -243,7 +271,7 @@ def test_history_adaptive_missing_and_empty_columns(exact):
     h["k"] = np.ones(8, dtype=np.int64)  # a single Newton step: no step line
     ax = plot.plot_history(dataclasses.replace(exact, history=h, method="exact-amg"))
     assert list(curves(ax)) == ["eta", "eta_disc"]
-    assert step_lines(ax) == []
+    assert step_marks(ax) == []
 
 
 def test_history_mesh_levels(exact):
@@ -258,11 +286,53 @@ def test_history_mesh_levels(exact):
     }
     ax = plot.plot_history(dataclasses.replace(exact, history=h, method="exact-amg"))
     assert list(curves(ax)) == ["eta"]
-    steps = step_lines(ax)
-    assert [line.get_xdata()[0] for line in steps] == [8.0, 12.0, 22.0]
-    assert [line.get_linestyle() for line in steps] == [":", "--", ":"]
-    legend = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert legend[1:] == ["new Newton step", "new mesh level"]
+    # level 1 runs from the end of level 0 (inner_total 12) to the last row (27): shaded
+    assert level_bands(ax) == [(12.0, 27.0)]
+    # Newton steps start after rows 1 and 4; row 2 ends a level (the band shows it)
+    assert step_marks(ax) == [8.0, 22.0]
+    legend = legend_texts(ax)
+    assert sorted(legend[1:]) == ["a Newton step starts", "mesh levels (alternate shading)"]
+
+
+def test_history_predicted_disc_and_round_off(exact):
+    """Predicted eta_disc values are hollow points; components far below eta are left out."""
+    h = {
+        "level": np.array([0, 0, 1, 1]),
+        "k": np.array([1, 2, 1, 2]),
+        "inner": np.array([3, 6, 2, 4]),
+        "inner_total": np.array([3, 6, 8, 10]),
+        "eta_disc": np.array([0.2, 0.2, 0.1, 0.05]),
+        "fresh_disc": np.array([1, 0, 0, 1]),
+        "eta": np.array([0.5, np.nan, np.nan, 0.06]),
+        "eta_alg": np.array([0.1, 1e-15, 1e-15, 1e-3]),  # round-off: exact coarse solves
+    }
+    ax = plot.plot_history(dataclasses.replace(exact, history=h, method="inexact"))
+    lines = curves(ax)
+    assert_array_equal(lines["eta_disc"].get_xdata(), [3.0, 10.0])
+    assert_array_equal(lines["eta_disc_predicted"].get_xdata(), [6.0, 8.0])
+    assert lines["eta_disc_predicted"].get_linestyle() == "None"
+    assert lines["eta_disc_predicted"].get_markerfacecolor() == "none"
+    assert lines["eta_disc_predicted"].get_color() == lines["eta_disc"].get_color()
+    assert_array_equal(lines["eta_alg"].get_ydata(), [0.1, 1e-3])
+    assert "2 < 6e-05 left out" in lines["eta_alg"].get_label()
+    assert ax.get_ylim()[0] == pytest.approx(1e-3 / 2)
+
+
+def test_history_keeps_the_last_levels(exact):
+    """An adaptive loop's 20 levels: the panel shows the last 8 and says so."""
+    level = np.repeat(np.arange(20), 2)
+    h = {
+        "level": level,
+        "k": np.tile([1, 2], 20),
+        "inner": np.tile([2, 4], 20),
+        "inner_total": np.cumsum(np.tile([2, 2], 20)),
+        "eta": 1.0 / (1.0 + level),
+    }
+    ax = plot.plot_history(dataclasses.replace(exact, history=h, method="inexact"))
+    assert_array_equal(curves(ax)["eta"].get_xdata(), h["inner_total"][level >= 12])
+    assert "last 8 of 20 mesh levels" in ax.get_title()
+    # level 12 begins where its first row's step began; level 13 (shaded) after row 25
+    assert level_bands(ax)[0] == (float(h["inner_total"][25]), float(h["inner_total"][27]))
 
 
 def test_history_nothing_plottable(exact):
@@ -291,24 +361,63 @@ def test_solution_panels(exact):
     fig = axes[0].figure
     assert len(fig.axes) == 6  # three panels, three colorbars
     for ax, values in zip(axes, (exact.u1, exact.u2, exact.gap), strict=True):
-        (tpc,) = ax.collections
+        tpc = ax.collections[0]
         assert tpc.get_array().shape == (exact.mesh.n_vertices,)  # gouraud: vertex values
         assert_allclose(tpc.get_array(), values)
         assert ax.get_aspect() == 1.0
         assert ax.get_title()
-    (dots,) = [line for line in axes[2].lines if line.get_gid() == "active"]
-    active = exact.mesh.vertices[exact.active]
-    assert 0 < len(active) < exact.mesh.n_vertices
-    assert_array_equal(dots.get_xdata(), active[:, 0])
-    assert_array_equal(dots.get_ydata(), active[:, 1])
+    assert len(axes[0].collections) == len(axes[1].collections) == 1
+    (region,) = [c for c in axes[2].collections if c.get_gid() == "active"]
+    inside = np.zeros(exact.mesh.n_vertices, dtype=bool)
+    for path in region.get_paths():
+        inside |= path.contains_points(exact.mesh.vertices)
+    assert 0 < exact.active.sum() < exact.mesh.n_vertices
+    assert_array_equal(inside, exact.active)  # the region holds the contact vertices only
+    n = int(exact.active.sum())
+    assert legend_texts(axes[2]) == [f"contact set ({n} vertices)"]
 
 
 def test_solution_without_contact(exact):
     none = dataclasses.replace(exact, active=np.zeros_like(exact.active))
     axes = plot.plot_solution(none)
-    (dots,) = axes[2].lines
-    assert len(dots.get_xdata()) == 0
-    assert "0 vertices" in axes[2].get_title()
+    assert [c.get_gid() for c in axes[2].collections if c.get_gid()] == []
+    assert legend_texts(axes[2]) == ["contact set (0 vertices)"]
+
+
+def test_contact_pressure_panel(exact):
+    ax = plot.plot_contact_pressure(exact)
+    (shading,) = [c for c in ax.collections if c.get_gid() == "lam"]
+    assert_allclose(shading.get_array(), exact.lam)
+    assert shading.norm.vmin == 0.0  # linear from 0: lam >= 0 at a solution
+    assert shading.norm.vmax == pytest.approx(exact.lam.max())
+    assert [c.get_gid() for c in ax.collections].count("active") == 1  # the outline
+    assert "contact pressure" in ax.get_title()
+
+
+def test_indicator_panel_scales(exact):
+    """eta_K: linear from 0 when the values span less than two decades, log beyond."""
+    from matplotlib.colors import LogNorm
+
+    r = fm.solve(SCENE, method="exact")  # with the estimate
+    ax = plot.plot_indicators(r)
+    (coll,) = [c for c in ax.collections if c.get_gid() == "eta_K"]
+    assert coll.get_array().shape == (r.mesh.n_triangles,)
+    eta_k = np.sqrt(fm.adapt.indicators(r.estimate))
+    norm, _ = plot._indicator_scale(eta_k)
+    assert coll.norm.vmax == pytest.approx(norm.vmax)
+    meaningful = eta_k[eta_k > eta_k.max() * 1e-8]
+    assert coll.norm.vmax == pytest.approx(np.percentile(meaningful, 99.5))
+    spread = np.percentile(meaningful, 99.5) / np.percentile(meaningful, 1.0)
+    assert isinstance(coll.norm, LogNorm) == (spread >= 100)
+    wide = np.concatenate([np.geomspace(1e-6, 1e-2, 200), np.zeros(10)])
+    narrow = np.concatenate([np.linspace(1e-4, 5e-4, 200), np.zeros(10)])
+    assert isinstance(plot._indicator_scale(wide)[0], LogNorm)
+    linear, extend = plot._indicator_scale(narrow)
+    assert not isinstance(linear, LogNorm)
+    assert linear.vmin == 0.0
+    assert extend == "max"  # the top half percent lies beyond the scale
+    ax = plot.plot_indicators(exact)  # no estimate
+    assert "no error indicators" in ax.texts[0].get_text()
 
 
 def test_solution_needs_three_axes(exact):
@@ -360,7 +469,7 @@ def test_cli_default_output(exact, archive, capsys):
     out = archive.with_suffix(".png")
     try:
         assert args.func(args) == 0
-        assert png_size(out) == (1800, 1425)
+        assert png_size(out) == (1800, 2070)
         assert capsys.readouterr().out == f"wrote {out}\n"
     finally:
         out.unlink(missing_ok=True)
@@ -438,8 +547,15 @@ def test_adaptivity_panels(adapted):
     assert_array_equal(lines["uniform"].get_ydata(), [0.2, 0.1, 0.03])
     assert ax.get_xscale() == ax.get_yscale() == "log"
     assert str(adapted.mesh.n_vertices) in mesh_ax.get_title()
-    (coll,) = [c for c in mesh_ax.collections if c.get_gid() == "mesh"]
-    assert len(coll.get_array()) == adapted.mesh.n_triangles  # one colour per triangle
+    (edges,) = [line for line in mesh_ax.lines if line.get_gid() == "mesh"]
+    # triplot draws every edge once, each as a segment between NaN separators
+    segments = np.isfinite(edges.get_xdata()).sum() // 2
+    assert segments == adapted.mesh.n_edges
+    assert f"contact set ({int(adapted.active.sum())} vertices)" in legend_texts(mesh_ax)
+    # no component drawn three decades below the smallest eta; the tolerance is drawn
+    floor = np.min(table["eta"]) * 1e-3
+    assert all((line.get_ydata() >= floor).all() for line in lines.values())
+    assert ax.get_ylim()[0] >= floor / 2
 
 
 def test_adaptivity_errors(adapted, exact):
@@ -452,7 +568,7 @@ def test_adaptivity_errors(adapted, exact):
 def test_plot_result_of_a_solve_to_tolerance(adapted, tmp_path):
     out = tmp_path / "a.png"
     fig = plot.plot_result(adapted, out)
-    assert png_size(out) == (1800, 2137)  # three rows
+    assert png_size(out) == (1800, 2760)  # four rows of 4.6 inches
     titles = [ax.get_title() for ax in fig.axes]
     assert any("adaptive refinement" in t for t in titles)
 
@@ -469,3 +585,31 @@ def test_cli_uniform_archives(adapted, exact, tmp_path, capsys):
     exact.save(plain)  # no estimate: no eta to draw
     assert plot.run_plot(parse(["plot", str(a), "--uniform", str(plain), "-o", str(out)])) == 2
     assert "without an error bound" in capsys.readouterr().err
+
+
+def test_cli_dpi(archive, tmp_path, capsys):
+    out = tmp_path / "small.png"
+    assert plot.run_plot(parse(["plot", str(archive), "-o", str(out), "--dpi", "60"])) == 0
+    assert png_size(out) == (720, 828)  # 12 x 13.8 inches at 60 dpi
+    with pytest.raises(ParameterError, match="dpi must be a number between 10 and 1200, got 0"):
+        plot.plot_result(fm.load(archive), tmp_path / "x.png", dpi=0)
+    assert not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize("name", ["sweep-index.h5", "renamed.h5"])
+def test_cli_sweep_index_points_to_the_study(tmp_path, capsys, name):
+    """`fastmem plot study/sweep-index.h5` names the command that plots a study."""
+    import h5py
+
+    from fastmem.sweeps.grid import INDEX_FORMAT
+
+    study = tmp_path / "study"
+    study.mkdir()
+    with h5py.File(study / name, "w") as f:
+        f.attrs["format"] = INDEX_FORMAT
+    assert plot.run_plot(parse(["plot", str(study / name)])) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "is the index of the sweep study" in err
+    assert f"fastmem plot {study} --x PARAMETER --y COLUMN" in err
+    assert not (study / name).with_suffix(".png").exists()

@@ -100,8 +100,20 @@ def _check_solve_to_tolerance(stdout, out):
     assert re.search(rf"^\s*{rows - 1}\s+{result.mesh.n_vertices}\s", stdout, re.MULTILINE)
 
 
+def _check_gallery(stdout, out):
+    names = ("single", "adaptive", "heterogeneous", "sweep")
+    for name in names:
+        png = out / f"{name}.png"
+        data = png.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{png} is not a PNG"
+        assert 10_000 < len(data) <= 300_000, f"{png}: {len(data)} bytes"
+        assert f"{name}.png: {len(data)} bytes" in stdout
+    assert not (out / "gallery-work").exists()  # the archives and the study are removed
+
+
 CHECKS = {
     "default_scene": _check_default_scene,
+    "gallery": _check_gallery,
     "gmsh_mesh": _check_gmsh_mesh,
     "heterogeneous_mu": _check_heterogeneous_mu,
     "read_archive_h5py": _check_read_archive_h5py,
@@ -109,7 +121,10 @@ CHECKS = {
 }
 
 #: Examples that need optional packages: run only where they import.
-REQUIRES = {"parameter_study": ("dask", "pandas")}
+REQUIRES = {
+    "parameter_study": ("dask", "pandas"),
+    "gallery": ("matplotlib", "dask", "pandas"),
+}
 
 
 @pytest.mark.skipif(not SCRIPTS, reason=f"no examples folder at {EXAMPLES} (installed package)")

@@ -578,8 +578,12 @@ def test_plot_sweep(study, tmp_path):
     assert png.stat().st_size > 0
     ax = fig.axes[0]
     assert len(ax.get_lines()) == 3  # one line per gap g
-    assert ax.get_xlabel() == "mu2"
-    assert ax.get_ylabel() == "contact_fraction"
+    # words, not column names; the legend names the other parameter that varies
+    assert ax.get_xlabel() == r"tension $\mu_2$ of membrane 2"
+    assert ax.get_ylabel() == "contact fraction (share of vertices in contact)"
+    assert ax.get_title().startswith(r"contact fraction against $\mu_2$ (study ")
+    assert all(line.get_label().startswith("g = ") for line in ax.get_lines())
+    assert sweep_cli.column_label("my_parameter") == "my parameter"  # a user's factory
     with pytest.raises(ParameterError, match="'colour'.*mu2"):
         sweep_cli.plot_sweep(out, "mu2", "colour")
 
