@@ -6,9 +6,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import pool as _par
+from ..kernels.masked import gap_counts_range, gap_fill_range
 from ..kernels.smooth import csr_matvec_range
 
-__all__ = ["THREADED_ROWS", "ThreadedCSR", "threaded"]
+__all__ = ["THREADED_ROWS", "ThreadedCSR", "masked_gap", "threaded"]
 
 
 def _unsigned(index: np.ndarray) -> np.ndarray:
@@ -81,5 +82,38 @@ def threaded(a):
     ):
         return a
     out = ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape, copy=False)
+    out.has_sorted_indices = a.has_sorted_indices
+    return out
+
+
+def masked_gap(a, active: np.ndarray):
+    """Return the gap matrix of ``a`` for the active set ``active``, built in the kernel threads.
+
+    The entries of the canonical CSR matrix ``a`` in inactive rows and
+    columns, and the diagonal of the active rows; stored zeros dropped; the
+    index dtype of ``a`` kept (:func:`fastmem.solver.steps.gap_matrix` has the
+    definition and a NumPy version, which this matches bit for bit).  Two
+    passes over row chunks (:mod:`fastmem.kernels.masked`): count, prefix sum,
+    copy.  None when ``a``'s arrays are not the kernel's (the caller falls back).
+    """
+    if not _kernel_arrays(a) or a.dtype != np.float64:
+        return None
+    n = a.shape[0]
+    indptr, indices = _unsigned(a.indptr), _unsigned(a.indices)
+    data = a.data
+    mask = np.ascontiguousarray(active, dtype=np.bool_)
+    counts = np.empty(n, dtype=indptr.dtype)
+    _par.parallel_for(gap_counts_range, n, indptr, indices, data, mask, counts)
+    new_ptr = np.zeros(n + 1, dtype=a.indptr.dtype)
+    np.cumsum(counts, out=new_ptr[1:], dtype=new_ptr.dtype)
+    nnz = int(new_ptr[-1])
+    out_indices = np.empty(nnz, dtype=indices.dtype)
+    out_data = np.empty(nnz, dtype=np.float64)
+    _par.parallel_for(
+        gap_fill_range, n, indptr, indices, data, mask, _unsigned(new_ptr), out_indices, out_data
+    )
+    out = sp.csr_matrix(
+        (out_data, out_indices.view(a.indices.dtype), new_ptr), shape=a.shape, copy=False
+    )
     out.has_sorted_indices = a.has_sorted_indices
     return out

@@ -47,7 +47,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..linalg.amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner
-from ..linalg.sparse import threaded
+from ..linalg.sparse import THREADED_ROWS, masked_gap, threaded
 from .linear import DecoupledStep
 
 __all__ = [
@@ -185,8 +185,19 @@ def gap_matrix(a, active):
     diagonal): the entries of ``a`` in inactive rows and columns and the
     diagonal of the active rows, in ``a``'s order, stored zeros dropped, the
     index dtype of ``a`` kept.  Built by one pass of masks over ``a``'s entries
-    instead of three full temporaries of the matrix.
+    instead of three full temporaries of the matrix; from :data:`THREADED_ROWS`
+    rows on, by two passes over row chunks in the kernel threads
+    (:func:`fastmem.linalg.sparse.masked_gap`, the same arrays).
     """
+    if a.shape[0] >= THREADED_ROWS:
+        out = masked_gap(a, active)
+        if out is not None:
+            return out
+    return _gap_matrix_numpy(a, active)
+
+
+def _gap_matrix_numpy(a, active):
+    """:func:`gap_matrix` by NumPy masks over the entries (small matrices, and the reference)."""
     n = a.shape[0]
     indptr, indices, data = a.indptr, a.indices, a.data
     inactive = ~active

@@ -119,13 +119,24 @@ def test_shared_pattern_of_weighted_stiffness():
     np.testing.assert_array_equal((a * 2.5).toarray(), a2.toarray())  # bit for bit
 
 
-@pytest.mark.parametrize("n", [8, 33])
+@pytest.mark.parametrize("n", [8, 33, 200])
 @pytest.mark.parametrize("frac", [0.0, 0.3, 1.0])
-def test_gap_matrix_is_scipys_expression_bit_for_bit(n, frac):
+@pytest.mark.parametrize("path", ["dispatch", "numpy", "kernel"])
+def test_gap_matrix_is_scipys_expression_bit_for_bit(n, frac, path):
+    """Both builds of the gap matrix (NumPy masks; row chunks in the kernel threads,
+    used from THREADED_ROWS rows on: n = 200 has 39,601) give scipy's arrays."""
     import scipy.sparse as sp
 
+    from fastmem.linalg.sparse import THREADED_ROWS, masked_gap
+    from fastmem.solver import steps
     from fastmem.solver.linear import DecoupledStep
-    from fastmem.solver.steps import gap_matrix
+
+    gap_matrix = {
+        "dispatch": steps.gap_matrix,
+        "numpy": steps._gap_matrix_numpy,
+        "kernel": masked_gap,
+    }[path]
+    assert (200 - 1) ** 2 >= THREADED_ROWS > (33 - 1) ** 2
 
     scene = fm.Scene(fm.Mesh.square(n), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
     a = DecoupledStep(scene).a_ii
