@@ -73,6 +73,8 @@ from ..errors import DataError
 from ..fem.assembly import assemble_mass
 from ..fem.loaddata import integrals
 from ..kernels import cut as _cut
+from ..kernels import pool as _par
+from ..kernels import sums as _sums
 from ..linalg.sparse import threaded
 
 __all__ = [
@@ -358,6 +360,47 @@ def _map(x, name, m) -> np.ndarray:
     return arr
 
 
+#: Triangles from which :func:`combine` sums the maps in the kernel threads (smaller
+#: meshes: NumPy, and no kernel to compile for them).
+BLOCK_SUM_TRIANGLES = 1 << 17
+
+
+def _block_sums(eta_F1, eta_F2, local):
+    """Return the six maps and their sums for :func:`combine`, from one pass of the threads.
+
+    Returns ``(osc1, osc2, nc, eta_c, f1, f2, (sum d1^2, sum d2^2, sum (d2 + nc)^2,
+    sum nc^2, sum eta_c))``, or None when the maps are small or not contiguous
+    float64 arrays of one length (:func:`combine` then takes the NumPy path,
+    which also names a map with a bad entry).  The sums run over fixed blocks
+    (:mod:`fastmem.kernels.sums`): the same for every thread count, equal to
+    NumPy's up to round-off.
+    """
+    arrays = [
+        local["eta_osc1"],
+        local["eta_osc2"],
+        local["eta_nc"],
+        local["eta_C"],
+        eta_F1,
+        eta_F2,
+    ]
+    m = getattr(arrays[0], "shape", (0,))[0] if getattr(arrays[0], "ndim", 0) == 1 else 0
+    if m < BLOCK_SUM_TRIANGLES or not all(
+        isinstance(x, np.ndarray)
+        and x.dtype == np.float64
+        and x.shape == (m,)
+        and x.flags.c_contiguous
+        for x in arrays
+    ):
+        return None
+    blocks = -(-m // _sums.BLOCK)
+    out = np.empty((blocks, len(_sums.COMBINE_SUMS)))
+    _par.parallel_for(_sums.combine_blocks, blocks, _sums.BLOCK, *arrays, out, grain=1)
+    if out[:, 5].any():
+        return None  # a bad entry: the NumPy path finds and names it
+    totals = out[:, :5].sum(axis=0)
+    return (*arrays, tuple(float(t) for t in totals))
+
+
 def split_form(a0, d, c):
     r"""Return the second form of the layer bound (:mod:`fastmem.estimators.layers`).
 
@@ -472,36 +515,46 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     u_{2h})^+)` with the nodal values of :meth:`~fastmem.estimators.flux.ContactLoad.open_load`
     (:func:`contact_local_terms`); the global terms are unchanged.
     """
-    osc1 = _map(local["eta_osc1"], "eta_osc1", None)
-    m = osc1.shape[0]
-    osc2 = _map(local["eta_osc2"], "eta_osc2", m)
-    nc = _map(local["eta_nc"], "eta_nc", m)
-    eta_c = _map(local["eta_C"], "eta_C", m)
-    f1 = _map(eta_F1, "eta_F1", m)
-    f2 = _map(eta_F2, "eta_F2", m)
     missing = [k for k in (*_GLOBAL_KEYS, "mu1", "mu2") if k not in glob]
     if missing:
         raise DataError(f"glob lacks {missing}; pass the output of global_terms")
     g1, g2 = float(glob["eta_glob1"]), float(glob["eta_glob2"])
     c_f, mu1, mu2 = float(glob["C_F"]), float(glob["mu1"]), float(glob["mu2"])
-
-    # squeeze terms of the layer bound (fastmem.estimators.layers), zero otherwise
-    w1 = _map(local["eta_w1"], "eta_w1", m) if local.get("eta_w1") is not None else None
-    w2 = _map(local["eta_w2"], "eta_w2", m) if local.get("eta_w2") is not None else None
-    d1 = osc1 + f1  # membrane 1 per triangle
-    d2 = osc2 + f2  # membrane 2 per triangle, without the non-conformity
-    if w1 is not None:
-        d1 = d1 + w1
-    if w2 is not None:
-        d2 = d2 + w2
-    sum_d1 = float(d1 @ d1)
-    sum_d2 = float(d2 @ d2)
-    d2nc = d2 + nc
-    nc_total = math.sqrt(float(nc @ nc))
-    w_sq = sum(float(w @ w) for w in (w1, w2) if w is not None)
+    layered = local.get("eta_w1") is not None or local.get("eta_w2") is not None
+    sums = None if layered else _block_sums(eta_F1, eta_F2, local)
+    if sums is not None:  # one pass in the kernel threads (large meshes)
+        osc1, osc2, nc, eta_c, f1, f2, sums = sums
+        m = osc1.shape[0]
+        w1 = w2 = None
+        sum_d1, sum_d2, sum_d2nc, nc_sq, c = sums
+        w_sq = 0.0
+    else:
+        osc1 = _map(local["eta_osc1"], "eta_osc1", None)
+        m = osc1.shape[0]
+        osc2 = _map(local["eta_osc2"], "eta_osc2", m)
+        nc = _map(local["eta_nc"], "eta_nc", m)
+        eta_c = _map(local["eta_C"], "eta_C", m)
+        f1 = _map(eta_F1, "eta_F1", m)
+        f2 = _map(eta_F2, "eta_F2", m)
+        # squeeze terms of the layer bound (fastmem.estimators.layers), zero otherwise
+        w1 = _map(local["eta_w1"], "eta_w1", m) if local.get("eta_w1") is not None else None
+        w2 = _map(local["eta_w2"], "eta_w2", m) if local.get("eta_w2") is not None else None
+        d1 = osc1 + f1  # membrane 1 per triangle
+        d2 = osc2 + f2  # membrane 2 per triangle, without the non-conformity
+        if w1 is not None:
+            d1 = d1 + w1
+        if w2 is not None:
+            d2 = d2 + w2
+        sum_d1 = float(d1 @ d1)
+        sum_d2 = float(d2 @ d2)
+        d2nc = d2 + nc
+        sum_d2nc = float(d2nc @ d2nc)
+        nc_sq = float(nc @ nc)
+        w_sq = sum(float(w @ w) for w in (w1, w2) if w is not None)
+        c = float(eta_c.sum())
+    nc_total = math.sqrt(nc_sq)
     w_total = math.sqrt(w_sq)
-    a = math.sqrt(sum_d1 + float(d2nc @ d2nc)) + math.hypot(g1, g2)
-    c = float(eta_c.sum())
+    a = math.sqrt(sum_d1 + sum_d2nc) + math.hypot(g1, g2)
     root = 0.5 * (a + math.sqrt(a * a + 4.0 * c))  # positive root of x^2 = a x + c
     eta = root + math.sqrt(nc_total**2 + w_sq)
     split = None
