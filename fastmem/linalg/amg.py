@@ -16,6 +16,7 @@ import threading
 import time
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 
 from ..errors import ParameterError
@@ -31,6 +32,7 @@ from .sparse import _kernel_arrays, _unsigned, threaded
 __all__ = [
     "AMG_DEFAULTS",
     "PCG",
+    "CoarseCholesky",
     "LazyAMG",
     "TwoGridLaplacian",
     "amg_preconditioner",
@@ -43,12 +45,21 @@ __all__ = [
 #: instead of a spectral-radius estimate: at n = 512 (default scene, nested
 #: inexact solve) the setups took 0.83 s instead of 1.15 s with the same 75 CG
 #: iterations, the whole solve 6.3 s instead of 6.8 s (medians of 3, same run).
+#: The coarsest level (at most ``max_coarse`` unknowns) is solved by a dense
+#: Cholesky factorisation, with pyamg's pseudo-inverse (its default, an SVD) as the
+#: fallback where the matrix is not positive definite (:class:`CoarseCholesky`).
+#: The SVD of a 500 x 500 matrix took about 6 ms, at every setup and update of a
+#: hierarchy: 0.11 s of an adaptive L-shape loop of 0.87 s.  Adaptive L-shape
+#: (f = (-1, -1), tol 9e-3, 23 meshes), medians of 5 alternating in one process:
+#: 0.793 s with the SVD, 0.676 s with Cholesky; same meshes and CG iterations,
+#: eta equal to 1e-14 relative.
 AMG_DEFAULTS = {
     "strength": "symmetric",
     "smooth": ("jacobi", {"weighting": "local"}),
     "max_coarse": 500,
     "presmoother": ("gauss_seidel", {"sweep": "symmetric"}),
     "postsmoother": ("gauss_seidel", {"sweep": "symmetric"}),
+    "coarse_solver": "cholesky",
     "cycle": "V",
 }
 
@@ -71,6 +82,7 @@ _AMG_KEYS = frozenset(
         "max_coarse",
         "diagonal_dominance",
         "keep",
+        "coarse_solver",
     }
 )
 
@@ -89,6 +101,42 @@ def check_amg_options(options) -> dict:
     if out["cycle"] not in ("V", "W", "F"):
         raise ParameterError(f"amg_options['cycle'] must be 'V', 'W' or 'F', got {out['cycle']!r}")
     return out
+
+
+class CoarseCholesky:
+    """Solve on the coarsest level by dense Cholesky, falling back to the pseudo-inverse.
+
+    A callable ``(A, b) -> x`` for pyamg's ``coarse_solver``: the matrix is
+    factored at the first call (``scipy.linalg.cho_factor``) and the factors
+    are kept while ``A`` is the same object.  A matrix that is not positive
+    definite (a singular coarse operator) is solved with its pseudo-inverse
+    instead, pyamg's default.  The value ``"cholesky"`` of ``amg_options
+    ["coarse_solver"]`` selects it (a fresh instance per hierarchy and update).
+    """
+
+    def __init__(self):
+        self._matrix = None
+        self._factor = None
+        self._pinv = None
+
+    def __call__(self, a, b):
+        """Return the solution of ``a x = b`` (``a`` factored on its first call)."""
+        if a is not self._matrix:
+            dense = a.toarray() if sp.issparse(a) else np.asarray(a)
+            self._matrix, self._factor, self._pinv = a, None, None
+            try:
+                self._factor = scipy.linalg.cho_factor(dense, check_finite=False)
+            except np.linalg.LinAlgError:
+                self._pinv = scipy.linalg.pinv(dense)
+        b = np.asarray(b)
+        if self._factor is not None:
+            return scipy.linalg.cho_solve(self._factor, b, check_finite=False)
+        return self._pinv @ b
+
+
+def _coarse_solver(name):
+    """Return pyamg's ``coarse_solver`` for the option value ``name`` ("cholesky": ours)."""
+    return CoarseCholesky() if name == "cholesky" else name
 
 
 def _trim(ml):
@@ -379,6 +427,8 @@ class AMGPreconditioner:
 
         opts = dict(options)
         cycle = opts.pop("cycle")
+        self._coarse = opts.pop("coarse_solver", "pinv")  # pyamg's default for SA
+        opts["coarse_solver"] = _coarse_solver(self._coarse)
         t0 = time.perf_counter()
         with _fast_bsr_dedup():
             self.ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(matrix), **opts)
@@ -405,7 +455,6 @@ class AMGPreconditioner:
         self._cycle = getattr(self.ml, "_MultilevelSolver__solve", None)
         if len(self.ml.levels) < 2:
             self._cycle = None
-        self._coarse = opts.get("coarse_solver", "pinv")  # pyamg's default for SA
         self._setup_ops = None  # the setup's coarse operators, once :meth:`update` runs
         self.updates = 0
 
@@ -478,7 +527,7 @@ class AMGPreconditioner:
             rows = np.flatnonzero(np.diff(dc.indptr))
             d = dc[rows][:, rows]
         _select_smoothers(self.ml, self._plain, self._hybrid)  # convergent on the new operators
-        self.ml.coarse_solver = coarse_grid_solver(self._coarse)
+        self.ml.coarse_solver = coarse_grid_solver(_coarse_solver(self._coarse))
         self.updates += 1
         return time.perf_counter() - t0
 
