@@ -538,7 +538,8 @@ def plot_contact_pressure(result, ax=None):
     mappable.set_gid("lam")
     ax.figure.colorbar(mappable, ax=ax, shrink=0.9)
     _draw_contact(ax, tri, np.asarray(result.active, dtype=bool), fill=False)
-    _decorate(ax, rf"contact pressure $\lambda$ (max {top:.3g})")
+    span = f"max {top:.3g}" + (f", min {low:.2g}" if low < 0.0 else "")  # min < 0: an iterate
+    _decorate(ax, rf"contact pressure $\lambda$ ({span})")
     return ax
 
 

@@ -315,7 +315,10 @@ def test_a_near_miss_is_solved_on_before_refining(monkeypatch):
     assert len(mesh_k) == 1
     assert mesh_k[0]["solves"] == 2
     assert table["newton"][k] > plain["newton"][k]
-    assert table["eta_alg"][k] < plain["eta_alg"][k]
+    # the solver's part shrinks (eta_alg alone may sit at round-off in both runs: mesh k
+    # can be small enough for a direct coarse solve, whose round-off varies)
+    tight = table["eta_alg"][k] + table["eta_lin"][k]
+    assert tight < solver_part[k]
     # the loop's eta on mesh k is the fresh bound of the triple it kept
     if r.mesh.n_vertices == n[k]:
         est = fm.estimate(_default(r.mesh), r.u1, r.u2, r.lam)
