@@ -358,20 +358,11 @@ def test_client_killed_and_restarted(tmp_path):
     assert len(table) == 6
 
 
-def test_run_job_does_not_solve_a_written_run_again(tmp_path):
+def test_run_job_does_not_solve_a_written_run_again(tmp_path, job_for):
     """The worker-side check: a retried task finds the archive its dead worker wrote."""
     params = {"mu2": 2.0, "n": 6}
     name = sweeps.run_name(params)
-    (tmp_path / sweeps.RUNS_DIR).mkdir()
-    job = sweeps._Job(
-        factory=make_scene,
-        params=params,
-        name=name,
-        archive=str(tmp_path / sweeps.RUNS_DIR / f"{name}.h5"),
-        solve_options={},
-        log=str(tmp_path / sweeps.WRITE_LOG),
-        threads={},
-    )
+    job = job_for(make_scene, params)
     first = sweeps._run_job(job)
     second = sweeps._run_job(job)
     assert first.pop("solved") is True

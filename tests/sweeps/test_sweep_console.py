@@ -186,20 +186,9 @@ def test_validate_hook_of_a_user_factory(tmp_path, no_cluster, monkeypatch):
     assert not (tmp_path / "study").exists()
 
 
-def test_failed_run_names_its_factory(tmp_path):
+def test_failed_run_names_its_factory(job_for):
     """A refusal that only the run finds is recorded under the factory's own name."""
-    params = {"domain": "lshape", "n": 7}
-    name = sweeps.run_name(params)
-    (tmp_path / sweeps.RUNS_DIR).mkdir()
-    job = task._Job(
-        factory=standard_scene,
-        params=params,
-        name=name,
-        archive=str(tmp_path / sweeps.RUNS_DIR / f"{name}.h5"),
-        solve_options={},
-        log=str(tmp_path / sweeps.WRITE_LOG),
-        threads={},
-    )
+    job = job_for(standard_scene, {"domain": "lshape", "n": 7})
     row = task._run_job(job)
     assert row["status"] == "failed"
     assert row["error"] == (
