@@ -82,3 +82,25 @@ def rng(seed):
 def unstructured_mesh():
     """An unstructured mesh of the unit disk from scikit-fem (independent generator)."""
     return circle_mesh(3)
+
+
+@pytest.fixture
+def job_for(tmp_path):
+    """Build the worker-side job of one sweep run, ``factory(**params)``, in a study at tmp_path."""
+    from fastmem.sweeps import study as sweeps
+    from fastmem.sweeps import task
+
+    def make(factory, params):
+        name = sweeps.run_name(params)
+        (tmp_path / sweeps.RUNS_DIR).mkdir(exist_ok=True)
+        return task._Job(
+            factory=factory,
+            params=params,
+            name=name,
+            archive=str(tmp_path / sweeps.RUNS_DIR / f"{name}.h5"),
+            solve_options={},
+            log=str(tmp_path / sweeps.WRITE_LOG),
+            threads={},
+        )
+
+    return make
