@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import weakref
 from pathlib import Path
 
 import h5py
@@ -410,11 +411,20 @@ def _no_data(ax, text: str) -> None:
     ax.text(0.5, 0.5, text, transform=ax.transAxes, ha="center", va="center", color="0.4")
 
 
-def _triangulation(mesh):
-    from matplotlib.tri import Triangulation
+#: One matplotlib Triangulation per mesh (meshes are immutable): the panels of a
+#: figure share it, and its edges and contour finder, instead of one each.
+_TRIANGULATIONS = weakref.WeakKeyDictionary()
 
-    v = np.asarray(mesh.vertices, dtype=np.float64)
-    return Triangulation(v[:, 0], v[:, 1], np.asarray(mesh.triangles))
+
+def _triangulation(mesh):
+    tri = _TRIANGULATIONS.get(mesh)
+    if tri is None:
+        from matplotlib.tri import Triangulation
+
+        v = np.asarray(mesh.vertices, dtype=np.float64)
+        tri = Triangulation(v[:, 0], v[:, 1], np.asarray(mesh.triangles))
+        _TRIANGULATIONS[mesh] = tri
+    return tri
 
 
 def _decorate(ax, title: str) -> None:

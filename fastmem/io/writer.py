@@ -324,15 +324,15 @@ def _process_gone(pid: int) -> bool:
 def remove_stale_temporaries(target: Path, now: float | None = None) -> list[Path]:
     """Remove the temporary files an interrupted writer of ``target`` left beside it.
 
-    A write of ``target`` goes to ``.NAME.tmp-HOST-PID-XXXXXXXX`` in the same
-    folder (``XXXXXXXX`` random, plus the export's suffix; a folder for an
+    A write of ``target`` goes to ``.NAME.tmp-HOST-PID-RANDOM`` in the same
+    folder (``RANDOM`` eight random characters, plus the export's suffix; a folder for an
     XDMF export) and is renamed onto ``target`` when complete; a writer killed
     on the way (``kill -9``, a power cut) leaves it there.  Removed here, before
     the next write of the same ``target``: the entries of exactly that name
     pattern whose writer, on this machine (``HOST``), is no longer running
     (``PID``); and those that have not changed for :data:`STALE_AFTER` seconds
     when the writer cannot be checked (another machine sharing the folder, the
-    names of older fastmem versions, ``.NAME.tmp-XXXXXXXX``, or a system
+    names of older fastmem versions, ``.NAME.tmp-RANDOM``, or a system
     without the process check).  A running writer's file is left alone.
     Failures to remove are ignored (the next write tries again).
 

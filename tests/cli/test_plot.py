@@ -613,3 +613,12 @@ def test_cli_sweep_index_points_to_the_study(tmp_path, capsys, name):
     assert "is the index of the sweep study" in err
     assert f"fastmem plot {study} --x PARAMETER --y COLUMN" in err
     assert not (study / name).with_suffix(".png").exists()
+
+
+def test_panels_share_one_triangulation(exact):
+    """One Triangulation per mesh for every panel of a figure (built once, not per panel)."""
+    tri = plot._triangulation(exact.mesh)
+    assert plot._triangulation(exact.mesh) is tri
+    other = fm.Mesh.square(4)
+    assert plot._triangulation(other) is not tri
+    assert plot._triangulation(other).triangles.shape == (other.n_triangles, 3)

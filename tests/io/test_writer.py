@@ -1,6 +1,6 @@
 """Temporary files of interrupted writes (fastmem.io.writer.remove_stale_temporaries).
 
-A write goes to ``.NAME.tmp-HOST-PID-XXXXXXXX`` beside the target and is renamed
+A write goes to ``.NAME.tmp-HOST-PID-RANDOM`` beside the target and is renamed
 when complete.  A writer killed on the way leaves that file; the next write of
 the same target removes it when its writer is gone (or, when the writer cannot
 be checked, when it is older than ``STALE_AFTER``), and never touches the file
