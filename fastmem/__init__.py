@@ -52,6 +52,7 @@ from .cli.warmup import warm_up  # noqa: E402
 from .config import get_threads, set_threads  # noqa: E402
 from .errors import FastmemError  # noqa: E402
 from .estimators.bound import estimate  # noqa: E402
+from .fem.obstacle import Obstacle  # noqa: E402
 from .fem.scene import Scene  # noqa: E402
 from .io.archive import load  # noqa: E402
 from .io.result import Estimate, Result  # noqa: E402
@@ -67,6 +68,7 @@ __all__ = [
     "FastmemError",
     "Manufactured",
     "Mesh",
+    "Obstacle",
     "Result",
     "Scene",
     "__version__",

@@ -24,11 +24,13 @@ from __future__ import annotations
 import time
 
 from .adapt.loop import solve_to_tolerance
+from .adapt.obstacle import solve_obstacle
 from .config import blas_limits
 from .errors import InputTypeError, ParameterError, checked_keywords
 from .fem.loaddata import expect_estimates
+from .fem.obstacle import Obstacle
 from .fem.scene import Scene
-from .io.result import Result, check_triple
+from .io.result import Result, check_nodal, check_triple
 from .memory import check_memory
 from .solver.history import HISTORY_COLUMNS
 from .solver.levels import solve_levels
@@ -207,8 +209,26 @@ def solve(
     MemoryLimitError
         The estimated peak memory exceeds the limit (see ``memory_limit``).
     """
-    if not isinstance(scene, Scene):
-        raise InputTypeError(f"scene must be a fastmem.Scene, got {type(scene).__name__}")
+    if isinstance(scene, Obstacle):
+        if path != "auto":
+            raise ParameterError(
+                f"path={path!r} is an option of the two-membrane Scene only; an Obstacle has "
+                "one formulation (leave path out)"
+            )
+        for name, value, default in (
+            ("full_history", full_history, False),
+            ("keep_iterates", keep_iterates, False),
+            ("safeguard", safeguard, True),
+        ):
+            if value is not default:
+                raise ParameterError(
+                    f"{name}={value!r} is an option of the two-membrane Scene only; an "
+                    f"Obstacle does not take it (leave {name} out)"
+                )
+    elif not isinstance(scene, Scene):
+        raise InputTypeError(
+            f"scene must be a fastmem.Scene or fastmem.Obstacle, got {type(scene).__name__}"
+        )
     options = SolveOptions.from_keywords(
         method=method,
         path=path,
@@ -234,6 +254,8 @@ def solve(
         time_budget=time_budget,
         level_monitor=level_monitor,
     )
+    if isinstance(scene, Obstacle):
+        return _solve_obstacle(scene, options, initial, blas_threads, memory_limit)
     if path == "decoupled" and not scene.constant_mu:
         raise ParameterError(
             "path='decoupled' needs constant mu1 and mu2; this scene has per-triangle "
@@ -271,3 +293,56 @@ def solve(
             result = solve_to_tolerance(scene, options, init, timings)
     timings["total"] = time.perf_counter() - t_start
     return result
+
+
+def _solve_obstacle(problem, options, initial, blas_threads, memory_limit):
+    """:func:`solve` for an :class:`~fastmem.fem.obstacle.Obstacle` (validated options)."""
+    adapt = options.adapt
+    if adapt is not None and problem.mesh.n_vertices > adapt.max_vertices:
+        raise ParameterError(
+            f"max_vertices={adapt.max_vertices} is smaller than the initial mesh "
+            f"({problem.mesh.n_vertices} vertices)"
+        )
+    mesh = problem.mesh
+    check_memory(
+        mesh.n_vertices,
+        mesh.n_triangles,
+        options.newton.method,
+        options.newton.needs_estimate,
+        memory_limit,
+    )
+    init = None
+    if initial is not None:
+        if not isinstance(initial, (tuple, list)) or len(initial) != 2:
+            raise InputTypeError("initial must be a pair (u, lam) of nodal arrays for an Obstacle")
+        init = [
+            check_nodal(mesh, a, "initial " + n) for n, a in zip(("u", "lam"), initial, strict=True)
+        ]
+    opts = {
+        "method": options.newton.method,
+        "max_newton": options.newton.max_newton,
+        "gamma_lin": options.newton.gamma_lin,
+        "nested": options.newton.nested,
+        "estimate": options.newton.needs_estimate,
+        "gamma_alg": options.inner.gamma_alg,
+        "max_inner": options.inner.max_inner * (10 if options.newton.method == "exact-amg" else 1),
+        "check_every": options.inner.check_every,
+        "amg_reuse": options.inner.amg_reuse,
+        "amg_options": dict(options.inner.amg_options),
+        "monitor": options.record.monitor,
+        "adapt": None,
+    }
+    if adapt is not None:
+        opts["adapt"] = {
+            "tol": adapt.tol,
+            "rtol": adapt.rtol,
+            "theta": adapt.theta,
+            "max_vertices": adapt.max_vertices,
+            "max_levels": adapt.max_levels,
+            "time_budget": adapt.time_budget,
+            "level_monitor": adapt.level_monitor,
+        }
+    with blas_limits(blas_threads):
+        if opts["estimate"]:
+            expect_estimates(problem)
+        return solve_obstacle(problem, opts, init)

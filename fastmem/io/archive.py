@@ -68,7 +68,7 @@ import numpy as np
 
 from ..errors import ArchiveError, InputTypeError, checked_keywords
 from ..mesh.mesh import Mesh
-from .result import Estimate, Result, check_result
+from .result import Estimate, ObstacleResult, Result, check_result
 from .writer import (
     _MAGIC,
     _SOLUTION,
@@ -388,9 +388,16 @@ def load(path) -> Result:
         parameters = json.loads(_as_str(attrs["scene"]))
         # archives hold validated counter-clockwise meshes: anything else is damage
         mesh = Mesh(vertices, triangles, orientation="raise")
-        result = Result(
+        cls, extra = Result, {}
+        if parameters.get("problem") == "obstacle":
+            cls = ObstacleResult
+            for name in ("lower", "upper"):
+                if f"solution/{name}" in f:
+                    extra[name] = _read(f, f"solution/{name}", p)
+        result = cls(
             mesh=mesh,
             **fields,
+            **extra,
             history=history,
             timings=timings,
             parameters=parameters,

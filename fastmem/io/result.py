@@ -14,7 +14,15 @@ from ..fem.scene import MAX_MAGNITUDE
 from ..mesh.mesh import Mesh
 from .writer import write_archive, write_export
 
-__all__ = ["COMPONENTS", "Estimate", "Result", "check_nodal", "check_result", "check_triple"]
+__all__ = [
+    "COMPONENTS",
+    "Estimate",
+    "ObstacleResult",
+    "Result",
+    "check_nodal",
+    "check_result",
+    "check_triple",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -322,3 +330,81 @@ class Result:
         """Write mesh and nodal fields to a VTU/XDMF file through meshio."""
         check_result(self)
         write_export(self, path)
+
+
+@dataclass(repr=False)
+class ObstacleResult(Result):
+    """Solution of an obstacle problem (:class:`fastmem.Obstacle`), a :class:`Result`.
+
+    The two-membrane fields are reused so that archives, ``fastmem info``,
+    export and sweeps handle both kinds: ``u1`` is the membrane ``u`` (also
+    :attr:`u`), ``lam`` the signed nodal multiplier (positive: the lower
+    obstacle pushes up; negative: the upper one pushes down), ``r1`` the
+    algebraic residual, ``u2`` and ``r2`` zero, ``active`` the union of the two
+    contact sets.  ``parameters["problem"]`` is ``"obstacle"``.
+
+    Attributes
+    ----------
+    lower, upper : ndarray of shape (N,) or None
+        Nodal values of the obstacles the problem was solved with.
+    """
+
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+
+    def __post_init__(self):
+        for name in ("lower", "upper"):
+            val = getattr(self, name)
+            if val is not None:
+                setattr(self, name, check_nodal(self.mesh, val, f"Result.{name}"))
+        super().__post_init__()
+        for val in (self.lower, self.upper):
+            if val is not None:
+                val.flags.writeable = False
+
+    def __repr__(self) -> str:
+        eta = "None" if self.eta is None else f"{self.eta:.4e}"
+        return (
+            f"ObstacleResult({self.mesh!r}, method={self.method!r}, converged={self.converged}, "
+            f"n_newton={self.n_newton}, eta={eta}, contact_area={self.contact_area:.6g})"
+        )
+
+    @property
+    def u(self) -> np.ndarray:
+        """Nodal values of the membrane."""
+        return self.u1
+
+    def _touching(self, which):
+        obst = self.lower if which == "lower" else self.upper
+        if obst is None:
+            return np.zeros(self.mesh.n_vertices, dtype=bool)
+        other = self.upper if which == "lower" else self.lower
+        d = np.abs(self.u1 - obst)
+        if other is None:
+            return self.active.copy()
+        return self.active & (d <= np.abs(self.u1 - other))
+
+    @property
+    def active_lower(self) -> np.ndarray:
+        """Vertices where the membrane lies on the lower obstacle (bool (N,))."""
+        return self._touching("lower")
+
+    @property
+    def active_upper(self) -> np.ndarray:
+        """Vertices where the membrane touches the upper obstacle (bool (N,))."""
+        return self._touching("upper")
+
+    @property
+    def contact_area(self) -> float:
+        """Discrete contact area ``sum(B_a, a active)`` (both obstacles)."""
+        return float(self.mesh.lumped_mass[self.active].sum())
+
+    @property
+    def gap(self) -> np.ndarray:
+        """Distance to the nearer obstacle, ``min(u - lower, upper - u)`` (N,)."""
+        d = np.full(self.mesh.n_vertices, np.inf)
+        if self.lower is not None:
+            d = np.minimum(d, self.u1 - self.lower)
+        if self.upper is not None:
+            d = np.minimum(d, self.upper - self.u1)
+        return d

@@ -156,6 +156,10 @@ def _write_solution(f: h5py.File, result) -> None:
     g = _group(f, "solution")
     for name, field in _SOLUTION.items():
         _write_array(g, name, getattr(result, field))
+    for name in ("lower", "upper"):  # an obstacle result's obstacles
+        value = getattr(result, name, None)
+        if value is not None:
+            _write_array(g, name, value)
 
 
 def _write_estimate(f: h5py.File, estimate) -> None:
@@ -466,6 +470,16 @@ def _meshio_mesh(result, pad_3d: bool):
         "r1": np.asarray(result.r1),
         "r2": np.asarray(result.r2),
     }
+    if (result.parameters or {}).get("problem") == "obstacle":
+        point_data = {
+            "u": np.asarray(result.u1),
+            "lambda": np.asarray(result.lam),
+            "active": np.asarray(result.active, dtype=np.float64),
+            "residual": np.asarray(result.r1),
+        }
+        for name in ("lower", "upper"):
+            if getattr(result, name, None) is not None:
+                point_data[name] = np.asarray(getattr(result, name))
     cell_data = {}
     if result.estimate is not None:
         cell_data = {k: [np.asarray(v)] for k, v in result.estimate.maps.items()}

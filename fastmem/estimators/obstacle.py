@@ -1,0 +1,703 @@
+r"""The guaranteed bound of the obstacle family (docs/obstacle.md §2.3-§6).
+
+For any iterate ``(u_h, lambda)`` of an :class:`~fastmem.fem.obstacle.Obstacle`
+(exact, inexact, infeasible) :func:`estimate` returns
+
+.. math::
+
+    |||u - u_h||| \le \eta = \min(\eta_I, \eta_{II}),
+    \qquad \eta_I \le \eta_{disc} + \eta_{lin} + \eta_{alg},
+
+with the terms of docs/obstacle.md §4.1: the RT1 flux of the one membrane
+(the two-membrane patch kernel with the second column switched off), the
+oscillation of a callable load, the distance of the clamp to ``u_h``, the
+complementarity and obstacle-approximation terms (exact for P1 obstacles,
+guaranteed piecewise bounds on red sub-triangles of the obstacle band for
+obstacles with an ``envelope``, §5.2), the Dirichlet lifting of a callable
+``g`` (§4.5) and the global residual term.
+
+The work is split as the solver needs it: :func:`cheap_terms` (O(N) vector
+work and one pass of the cut kernel: ``eta_alg``, ``eta_lin``) and the rest
+(flux reconstruction, obstacle pieces), which :func:`estimate` adds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numba
+import numpy as np
+
+from ..errors import DataError, NumericalError
+from ..fem.callables import evaluate_callable
+from ..fem.loaddata import integrals
+from ..fem.quadrature import triangle_rule
+from ..kernels import cut as _cut
+from ..kernels import flux as _kf
+from .flux import _coloring, _mu_array
+from .terms import friedrichs_constant, mass_matrix
+
+__all__ = ["ObstacleEstimate", "cheap_terms", "estimate", "residual", "split_multiplier"]
+
+
+@dataclass
+class ObstacleEstimate:
+    """The bound of one iterate and its parts (docs/obstacle.md §4, §6).
+
+    Attributes
+    ----------
+    eta : float
+        The guaranteed bound ``min(eta_I, eta_II)`` of the energy error.
+    eta_I, eta_II : float
+        The two forms of Theorem 4.1.
+    components : dict
+        ``eta_disc``, ``eta_lin``, ``eta_alg`` (Proposition 6.1:
+        ``eta <= eta_disc + eta_lin + eta_alg``).
+    indicators : ndarray (M,)
+        Refinement indicators ``eta_K`` (§6).
+    terms : dict
+        The scalar ingredients (``a``, ``a0``, ``D``, ``c``, ``c_disc``,
+        ``c_lin``, ``eta_glob``, ``D_nc``, ``D_boundary``, ...).
+    guaranteed : bool
+        False when an obstacle term is estimated (a callable obstacle without
+        ``envelope``) or the premise of case (i) failed (``reason`` says which).
+    case : str
+        ``"i"`` (the clamp lies in the admissible set) or ``"ii"``
+        (Lewy-Stampacchia, for obstacles with an envelope).
+    """
+
+    eta: float
+    eta_I: float
+    eta_II: float
+    components: dict
+    indicators: np.ndarray = field(repr=False)
+    terms: dict
+    guaranteed: bool = True
+    case: str = "i"
+    reason: str = ""
+
+    @property
+    def eta_disc(self) -> float:
+        """Discretisation component."""
+        return self.components["eta_disc"]
+
+    @property
+    def eta_lin(self) -> float:
+        """Linearisation component."""
+        return self.components["eta_lin"]
+
+    @property
+    def eta_alg(self) -> float:
+        """Algebraic component."""
+        return self.components["eta_alg"]
+
+
+# ----------------------------------------------------------------------- the iterate
+def residual(problem, u, lam) -> np.ndarray:
+    """``R_a = F_a - (mu A u)_a + B_a lam_a`` at interior vertices, 0 on the boundary."""
+    mesh = problem.mesh
+    r = problem.load - problem.weighted @ u + mesh.lumped_mass * lam
+    r[mesh.boundary_vertex_mask] = 0.0
+    return r
+
+
+def split_multiplier(problem, u, lam):
+    """Rule (2.1): ``lam = ell_plus - ell_minus - eps``, nodal, 0 on the boundary.
+
+    A positive value is the lower obstacle's pressure where the iterate is at
+    least as close to the lower obstacle as to the upper one; a negative value
+    the upper obstacle's where it is at least as close to the upper one; the
+    rest is left over (``eps``), 0 at the discrete solution (§2.3, P3).
+    """
+    bnd = problem.mesh.boundary_vertex_mask
+    lam = np.where(bnd, 0.0, lam)
+    psi, chi = problem.psi, problem.chi
+    d_lo = np.inf if psi is None else u - psi
+    d_up = np.inf if chi is None else chi - u
+    lower_ok = (lam > 0) & (d_lo <= d_up) if psi is not None else np.zeros(lam.shape, bool)
+    upper_ok = (lam < 0) & (d_up <= d_lo) if chi is not None else np.zeros(lam.shape, bool)
+    lp = np.where(lower_ok, lam, 0.0)
+    lm = np.where(upper_ok, -lam, 0.0)
+    eps = lp - lm - lam
+    return lp, lm, eps
+
+
+def _mass_norm(problem, v) -> float:
+    m = mass_matrix(problem)
+    return math.sqrt(max(float(v @ (m @ v)), 0.0))
+
+
+def _mu_min(problem) -> float:
+    return float(np.min(problem.mu))
+
+
+def _global_factor(problem) -> float:
+    """``C_F mu_min^(-1/2)``, cached."""
+    if "glob_factor" not in problem._cache:
+        problem._cache["glob_factor"] = friedrichs_constant(problem.mesh) / math.sqrt(
+            _mu_min(problem)
+        )
+    return problem._cache["glob_factor"]
+
+
+# ----------------------------------------------------------------- cheap terms
+def cheap_terms(problem, u, lam, r=None) -> dict:
+    """``eta_alg``, the P1-level contact terms and the pieces of ``eta_lin`` (O(N) work).
+
+    Returns a dict with ``rho``, ``eps``, ``ell_plus``, ``ell_minus``,
+    per-triangle ``nc`` (clamp distance, §4.1) and ``c_p1`` (the P1 part of the
+    complementarity), the scalars ``eta_alg``, ``eta_eps``, ``D_nc``.
+    """
+    mesh = problem.mesh
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    if r is None:
+        r = residual(problem, u, lam)
+    bnd = mesh.boundary_vertex_mask
+    rho = np.where(bnd, 0.0, r / mesh.lumped_mass)
+    lp, lm, eps = split_multiplier(problem, u, lam)
+    factor = _global_factor(problem)
+    mu = _mu_array(problem.mu)
+    m = mesh.n_triangles
+    nc2 = np.zeros(m)
+    c_p1 = {}  # (ell+, (u - psi_h)+)_K, (ell-, (chi_h - u)+)_K: exact for P1 obstacles
+    for side, vals, ell, sign in (
+        ("lower", problem.psi, lp, 1.0),
+        ("upper", problem.chi, lm, -1.0),
+    ):
+        if vals is None:
+            continue
+        gap = np.ascontiguousarray(sign * (u - vals))
+        nc, c_p1[side] = _cut.contact_terms(mesh.vertices, mesh.triangles, gap, ell, mu)
+        nc2 += nc * nc
+    nc = np.sqrt(nc2)
+    return {
+        "rho": rho,
+        "eps": eps,
+        "ell_plus": lp,
+        "ell_minus": lm,
+        "nc": nc,
+        "c_p1": c_p1,
+        "eta_alg": factor * _mass_norm(problem, rho),
+        "eta_eps": factor * _mass_norm(problem, eps),
+        "eta_glob": factor * _mass_norm(problem, rho + eps),
+        "D_nc": float(np.sqrt(np.sum(nc2))),
+    }
+
+
+# ----------------------------------------------------------------- flux
+def flux_terms(problem, u, lam_signed, rho) -> np.ndarray:
+    """``eta_F,K`` of the equilibrated RT1 flux of the iterate (§3), shape (M,).
+
+    The two-membrane patch kernel (:func:`fastmem.kernels.flux.reconstruct_colored`)
+    with membrane 1 = this membrane and membrane 2 given a compatible zero
+    problem (residual ``-lam``): its patch solves share membrane 1's
+    factorisation (same tension) and give the zero flux.
+    """
+    mesh = problem.mesh
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    bnd = np.ascontiguousarray(mesh.boundary_vertex_mask)
+    lam_i = np.where(bnd, 0.0, lam_signed)
+    mom = integrals(problem, 1, moments=True)["moments"]
+    const = float(problem.f) if mom is None else 0.0
+    mom = np.zeros((1, 3, 3)) if mom is None else mom
+    order, color_ptr = _coloring(mesh)
+    mu = _mu_array(problem.mu)
+    zero = np.zeros(mesh.n_vertices)
+    coef = _kf.reconstruct_colored(
+        order,
+        color_ptr,
+        mesh.vertices,
+        mesh.triangles,
+        mesh.diameters,
+        mesh.triangle_edges,
+        mesh.edge_triangles,
+        bnd,
+        mesh.patch_ptr,
+        mesh.patch_triangles,
+        mesh.patch_local,
+        u,
+        zero,
+        lam_i,
+        np.ascontiguousarray(rho),
+        -lam_i,
+        mu,
+        mu,
+        const,
+        0.0,
+        mom,
+        np.zeros((1, 3, 3)),
+        np.zeros(1, dtype=np.bool_),
+        np.zeros(1),
+        int(np.diff(mesh.patch_ptr).max()),
+        numba.get_num_threads(),
+        None,
+        None,
+    )
+    bary, w = triangle_rule(5)
+    out = _kf.flux_estimators(
+        mesh.vertices,
+        mesh.triangles,
+        mesh.diameters,
+        coef,
+        u,
+        zero,
+        mu,
+        mu,
+        np.ascontiguousarray(bary),
+        np.ascontiguousarray(w),
+    )
+    return out[0]
+
+
+# ----------------------------------------------------------------- Dirichlet lifting
+_GAUSS_POINTS = 8
+
+
+def boundary_lifting(problem) -> np.ndarray:
+    r"""``eta_partial,K = mu_K^(1/2) ||grad L phi||_K`` of a callable ``g`` (§4.5), shape (M,).
+
+    Zero for constant and nodal ``g``.  The 1D integral over each boundary
+    edge uses an 8-point Gauss-Legendre rule; ``phi'`` along the edge comes
+    from the degree-7 polynomial through the 8 values (an estimate of the
+    term, exact to round-off for smooth ``g``).  Cached on the problem.
+    """
+    if "eta_partial" in problem._cache:
+        return problem._cache["eta_partial"]
+    mesh = problem.mesh
+    out = np.zeros(mesh.n_triangles)
+    if callable(problem.g):
+        edges = mesh.boundary_edges if hasattr(mesh, "boundary_edges") else _boundary_edges(mesh)
+        tri, p, q, o = edges
+        xv = mesh.vertices
+        s, ws = np.polynomial.legendre.leggauss(_GAUSS_POINTS)
+        s = 0.5 * (s + 1.0)
+        ws = 0.5 * ws
+        vander = np.vander(s, _GAUSS_POINTS, increasing=True)
+        dvander = np.zeros_like(vander)
+        dvander[:, 1:] = vander[:, :-1] * np.arange(1, _GAUSS_POINTS)
+        dmat = dvander @ np.linalg.inv(vander)  # values at the nodes -> derivative there
+        xp, xq, xo = xv[p], xv[q], xv[o]
+        pts = xp[:, None, :] + s[None, :, None] * (xq - xp)[:, None, :]  # (E, 8, 2)
+        gvals = evaluate_callable(problem.g, pts[..., 0].ravel(), pts[..., 1].ravel(), "g")
+        gvals = gvals.reshape(pts.shape[:2])
+        gb = problem.boundary_values
+        phi = gvals - ((1.0 - s)[None, :] * gb[p][:, None] + s[None, :] * gb[q][:, None])
+        dphi = phi @ dmat.T
+        # G(s) = [y(s) - o, q - p]; solve G^T v = (phi, phi')
+        a11 = pts[..., 0] - xo[:, None, 0]
+        a21 = pts[..., 1] - xo[:, None, 1]
+        a12 = np.broadcast_to((xq - xp)[:, None, 0], a11.shape)
+        a22 = np.broadcast_to((xq - xp)[:, None, 1], a11.shape)
+        det = a11 * a22 - a12 * a21
+        # G^T = [[a11, a21], [a12, a22]]; v = G^-T (phi, dphi)
+        v1 = (a22 * phi - a21 * dphi) / det
+        v2 = (-a12 * phi + a11 * dphi) / det
+        integral = (v1 * v1 + v2 * v2) @ ws
+        mu = _mu_array(problem.mu)
+        mu_t = mu[tri] if mu.shape[0] > 1 else mu[0]
+        val = mu_t * mesh.areas[tri] * integral
+        sq = np.zeros(mesh.n_triangles)
+        np.add.at(sq, tri, val)  # a triangle with two boundary edges gets both liftings
+        out = np.sqrt(sq)
+        problem._cache["sup_phi"] = _sup_per_triangle(mesh, tri, np.abs(phi).max(axis=1))
+    problem._cache["eta_partial"] = out
+    return out
+
+
+def _sup_per_triangle(mesh, tri, values):
+    out = np.zeros(mesh.n_triangles)
+    np.maximum.at(out, tri, values)
+    return out
+
+
+def _boundary_edges(mesh):
+    """``(triangle, p, q, o)`` of every boundary edge: owner, end points, opposite vertex."""
+    et = mesh.edge_triangles
+    bnd = np.flatnonzero(et[:, 1] < 0)
+    tri = et[bnd, 0]
+    ends = mesh.edges[bnd]
+    verts = mesh.triangles[tri]
+    opposite = verts[(verts != ends[:, :1]) & (verts != ends[:, 1:])]
+    return tri, ends[:, 0], ends[:, 1], opposite
+
+
+# ----------------------------------------------------------------- obstacle pieces
+def _red_pieces(s: int) -> np.ndarray:
+    """Barycentric vertices of the ``4^s`` pieces of ``s`` red refinements, (P, 3, 3).
+
+    Counter-clockwise like their parent (each child keeps the orientation).
+    """
+    pieces = np.eye(3)[None, :, :]
+    for _ in range(s):
+        a, b, c = pieces[:, 0], pieces[:, 1], pieces[:, 2]
+        ab, bc, ca = 0.5 * (a + b), 0.5 * (b + c), 0.5 * (c + a)
+        pieces = np.concatenate(
+            [
+                np.stack([a, ab, ca], axis=1),
+                np.stack([ab, b, bc], axis=1),
+                np.stack([ca, bc, c], axis=1),
+                np.stack([bc, ca, ab], axis=1),
+            ]
+        )
+    return pieces
+
+
+def _enclosing_radius(px, py) -> np.ndarray:
+    """Radius of the smallest disc containing each triangle (P, 3) coordinates."""
+    ex = np.stack([px[:, 1] - px[:, 2], px[:, 2] - px[:, 0], px[:, 0] - px[:, 1]], axis=1)
+    ey = np.stack([py[:, 1] - py[:, 2], py[:, 2] - py[:, 0], py[:, 0] - py[:, 1]], axis=1)
+    l2 = ex * ex + ey * ey
+    lmax = l2.max(axis=1)
+    # obtuse or right: half the longest edge; acute: the circumradius
+    obtuse = 2.0 * lmax >= l2.sum(axis=1)
+    area2 = np.abs(ex[:, 1] * ey[:, 2] - ey[:, 1] * ex[:, 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        circ = np.sqrt(l2.prod(axis=1)) / (2.0 * area2)
+    return np.where(obtuse, 0.5 * np.sqrt(lmax), circ)
+
+
+def _pos_product(px, py, z, v) -> np.ndarray:
+    """``(v, z+)_T`` for affine ``v``, ``z`` given at the vertices of pieces (P, 3)."""
+    n = px.shape[0]
+    verts = np.stack([px.ravel(), py.ravel()], axis=1)
+    tris = np.arange(3 * n, dtype=np.int64).reshape(n, 3)
+    return _cut.positive_product(
+        verts, tris, np.ascontiguousarray(z.ravel()), np.ascontiguousarray(v.ravel())
+    )
+
+
+def _pos_weighted(px, py, y, z) -> np.ndarray:
+    """Bound ``(y+, z+)_T`` from above: exact where ``y >= 0`` on T, else ``(max y)+ (1, z+)_T``."""
+    exact = y.min(axis=1) >= 0.0
+    out = np.empty(px.shape[0])
+    if exact.any():
+        out[exact] = _pos_product(px[exact], py[exact], z[exact], y[exact])
+    rest = ~exact
+    if rest.any():
+        ymax = np.maximum(y[rest].max(axis=1), 0.0)
+        ones = np.ones_like(y[rest])
+        out[rest] = ymax * _pos_product(px[rest], py[rest], z[rest], ones)
+    return out
+
+
+class _Side:
+    """One obstacle seen as a lower obstacle (the upper one mirrored, §7)."""
+
+    def __init__(self, problem, side: str):
+        self.problem = problem
+        self.side = side
+        self.sign = 1.0 if side == "lower" else -1.0
+        self.func = problem.lower if side == "lower" else problem.upper
+        nodal = problem.psi if side == "lower" else problem.chi
+        self.h = self.sign * nodal
+        other = problem.chi if side == "lower" else problem.psi
+        self.other_h = None if other is None else self.sign * other  # upper bound, mirrored
+        self.kind = problem.obstacle_kind(side)
+
+    def values(self, x, y):
+        return self.sign * evaluate_callable(self.func, x, y, self.side)
+
+    def envelope(self, px, py):
+        """``(m_minus, m_plus, U)`` of the mirrored obstacle."""
+        mm, mp, lam_up = self.func.envelope(px, py)
+        mm, mp = np.asarray(mm, dtype=np.float64), np.asarray(mp, dtype=np.float64)
+        lam_up = np.asarray(lam_up, dtype=np.float64)
+        if lam_up.shape == mm.shape:
+            lam_up = np.repeat(lam_up[:, None], 3, axis=1)
+        if self.sign < 0:
+            mm, mp = mp, mm
+        return mm, mp, lam_up
+
+
+def _triangle_envelope(problem, side: _Side):
+    """``delta_K``, ``delta'_K`` of every triangle (§5.2 band test), cached per side."""
+    key = f"tri_env_{side.side}"
+    if key not in problem._cache:
+        mesh = problem.mesh
+        c = mesh.vertices[mesh.triangles]
+        px, py = np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
+        mm, mp, _ = side.envelope(px, py)
+        r2 = _enclosing_radius(px, py) ** 2
+        problem._cache[key] = (0.5 * mm * r2, 0.5 * mp * r2)
+    return problem._cache[key]
+
+
+def _piece_data(problem, side: _Side, tri: np.ndarray):
+    """Geometry, obstacle values and envelopes of the pieces of triangles ``tri``."""
+    mesh = problem.mesh
+    ref = _red_pieces(problem.sub_levels)  # (P, 3, 3) barycentric
+    npc = ref.shape[0]
+    corners = mesh.vertices[mesh.triangles[tri]]  # (B, 3, 2)
+    pts = np.einsum("pvk,bkd->bpvd", ref, corners)  # (B, P, 3, 2)
+    px = np.ascontiguousarray(pts[..., 0].reshape(-1, 3))
+    py = np.ascontiguousarray(pts[..., 1].reshape(-1, 3))
+    psi_t = side.values(px.ravel(), py.ravel()).reshape(-1, 3)
+    r2 = _enclosing_radius(px, py) ** 2
+    if side.kind == "guaranteed":
+        mm, mp, lam_up = side.envelope(px, py)
+        delta, delta_p = 0.5 * mm * r2, 0.5 * mp * r2
+    else:
+        delta = delta_p = np.zeros(px.shape[0])
+        lam_up = _estimated_pressure(problem, side, px, py)
+    return {
+        "ref": ref,
+        "npc": npc,
+        "px": px,
+        "py": py,
+        "psi": psi_t,
+        "delta": delta,
+        "delta_p": delta_p,
+        "U": lam_up,
+    }
+
+
+def _estimated_pressure(problem, side, px, py):
+    """``(-mu Lap psi - f)+`` at the piece vertices by a 5-point difference (not guaranteed)."""
+    h = _enclosing_radius(px, py)[:, None]  # the difference step: the piece's size
+    x, y = px, py
+    c = side.values(x.ravel(), y.ravel()).reshape(x.shape)
+    lap = -4.0 * c
+    for dx, dy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        lap += side.values((x + dx * h).ravel(), (y + dy * h).ravel()).reshape(x.shape)
+    lap /= h * h
+    mu = float(np.max(problem.mu))
+    f = problem.f
+    if callable(f):
+        fv = evaluate_callable(f, x.ravel(), y.ravel(), "f").reshape(x.shape)
+    elif isinstance(f, np.ndarray):
+        fv = np.full(x.shape, float(np.abs(f).max()))
+    else:
+        fv = np.full(x.shape, float(f))
+    return np.maximum(-mu * lap - side.sign * fv, 0.0)
+
+
+def _side_pieces(problem, side: _Side, tri: np.ndarray):
+    """Piece data for ``tri``, cached across iterates (the band moves little)."""
+    key = f"pieces_{side.side}"
+    cache = problem._cache.get(key)
+    if cache is None:
+        cache = {"tri": np.zeros(0, dtype=np.int64), "data": None}
+    have = cache["tri"]
+    missing = np.setdiff1d(tri, have, assume_unique=True)
+    if missing.size:
+        new = _piece_data(problem, side, missing)
+        if cache["data"] is None:
+            allt, data = missing, new
+        else:
+            allt = np.concatenate([have, missing])
+            data = {
+                k: (
+                    np.concatenate([cache["data"][k], new[k]])
+                    if k not in ("ref", "npc")
+                    else new[k]
+                )
+                for k in new
+            }
+        order = np.argsort(allt, kind="stable")
+        npc = new["npc"]
+        rows = (order[:, None] * npc + np.arange(npc)[None, :]).ravel()
+        data = {k: (v[rows] if k not in ("ref", "npc") else v) for k, v in data.items()}
+        cache = {"tri": allt[order], "data": data}
+        problem._cache[key] = cache
+    data = cache["data"]
+    npc = data["npc"]
+    pos = np.searchsorted(cache["tri"], tri)
+    rows = (pos[:, None] * npc + np.arange(npc)[None, :]).ravel()
+    return {k: (v[rows] if k not in ("ref", "npc") else v) for k, v in data.items()}
+
+
+def _obstacle_terms(problem, side: _Side, u, ell):
+    """Per-triangle ``(c_disc, c_lin)`` of one obstacle (§5.2), and whether guaranteed."""
+    mesh = problem.mesh
+    m = mesh.n_triangles
+    us = side.sign * u  # the iterate seen from this obstacle (mirrored for the upper one)
+    tris = mesh.triangles
+    c_disc = np.zeros(m)
+    # infeasibility piece (ell, (psi_h - u)+)_K: the lin part (0 at feasible iterates)
+    c_lin = _cut.positive_product(
+        mesh.vertices, tris, np.ascontiguousarray(side.h - us), np.ascontiguousarray(ell)
+    )
+    if side.kind == "piecewise-constant":
+        psi_k = side.sign * np.asarray(side.func.triangle_values(mesh), dtype=np.float64)
+        if psi_k.shape != (m,):
+            raise DataError(
+                f"{side.side}.triangle_values(mesh) must return one value per triangle, "
+                f"shape ({m},), got {psi_k.shape}"
+            )
+        # case (i) needs psi_h >= psi on every triangle (a P1 majorant, §5.5)
+        ok = bool(np.all(side.h[tris].min(axis=1) >= psi_k))
+        gap = us[tris] - psi_k[:, None]
+        c_disc = _pos_product(
+            np.ascontiguousarray(mesh.vertices[tris][..., 0]),
+            np.ascontiguousarray(mesh.vertices[tris][..., 1]),
+            gap,
+            ell[tris],
+        )
+        return (
+            c_disc,
+            c_lin,
+            ok,
+            ""
+            if ok
+            else (
+                f"the nodal values of the {side.side} obstacle are not a majorant on every triangle"
+            ),
+        )
+    delta_k, delta_pk = (
+        _triangle_envelope(problem, side)
+        if side.kind == "guaranteed"
+        else (
+            np.zeros(m),
+            np.zeros(m),
+        )
+    )
+    gap_h = us[tris] - side.h[tris]  # (M, 3)
+    has_ell = (ell[tris] > 0).any(axis=1)
+    concave_ok = (delta_pk == 0.0) & (gap_h.max(axis=1) <= 0.0)
+    line1 = has_ell & ~concave_ok
+    upper_viol = np.zeros(m, dtype=bool)
+    if side.other_h is not None:
+        upper_viol = ((us - side.other_h)[tris] > 0).any(axis=1)
+    line2 = (gap_h.min(axis=1) < delta_k) | upper_viol
+    if side.kind == "estimated":
+        line2 |= gap_h.min(axis=1) <= 0.0
+    band = np.flatnonzero(line1 | line2)
+    if band.size == 0:
+        return c_disc, c_lin, side.kind == "guaranteed", ""
+    d = _side_pieces(problem, side, band)
+    ref, npc = d["ref"], d["npc"]
+    u_t = np.einsum("pvk,bk->bpv", ref, us[tris[band]]).reshape(-1, 3)
+    ell_t = np.einsum("pvk,bk->bpv", ref, ell[tris[band]]).reshape(-1, 3)
+    px, py = d["px"], d["py"]
+    first = np.repeat(line1[band], npc)
+    part = np.zeros(px.shape[0])
+    if first.any():
+        z = u_t[first] - d["psi"][first] + d["delta_p"][first][:, None]
+        part[first] += _pos_product(px[first], py[first], z, ell_t[first])
+    y = d["U"] - ell_t
+    z = d["psi"] + d["delta"][:, None] - u_t
+    part += _pos_weighted(px, py, y, z)
+    c_disc[band] = part.reshape(-1, npc).sum(axis=1)
+    if side.other_h is not None and upper_viol.any():
+        oh_t = np.einsum("pvk,bk->bpv", ref, side.other_h[tris[band]]).reshape(-1, 3)
+        lin = _pos_weighted(px, py, y, u_t - oh_t)
+        c_lin[band] += lin.reshape(-1, npc).sum(axis=1)
+    guaranteed = side.kind == "guaranteed"
+    return (
+        c_disc,
+        c_lin,
+        guaranteed,
+        ""
+        if guaranteed
+        else (f"the {side.side} obstacle is a callable without envelope: its terms are estimated"),
+    )
+
+
+# ----------------------------------------------------------------- the bound
+def _forms(a, a0, d, c):
+    if a * a + 4.0 * c < 0 or (a0 + d) ** 2 + 4.0 * (a0 * d + c) < 0:
+        raise NumericalError(f"obstacle bound: negative discriminant (a={a:g}, c={c:g})")
+    eta_1 = 0.5 * (a + math.sqrt(a * a + 4.0 * c)) + d
+    big = a0 + d
+    eta_2 = 0.5 * (big + math.sqrt(big * big + 4.0 * (a0 * d + c)))
+    return eta_1, eta_2
+
+
+def estimate(problem, u, lam, r=None, cheap: dict | None = None) -> ObstacleEstimate:
+    """Bound the energy error of any iterate ``(u, lam)`` (docs/obstacle.md Theorem 4.1).
+
+    Parameters
+    ----------
+    problem : Obstacle
+    u, lam : ndarray of shape (N,)
+        Nodal values of the membrane and of the multiplier (any values; the
+        multiplier's boundary values are ignored).
+    r : ndarray of shape (N,), optional
+        The algebraic residual :func:`residual` (computed when omitted).
+    cheap : dict, optional
+        :func:`cheap_terms` of the same iterate, if already computed.
+
+    Returns
+    -------
+    ObstacleEstimate
+    """
+    mesh = problem.mesh
+    u = np.ascontiguousarray(u, dtype=np.float64)
+    lam = np.ascontiguousarray(lam, dtype=np.float64)
+    if r is None:
+        r = residual(problem, u, lam)
+    if cheap is None:
+        cheap = cheap_terms(problem, u, lam, r)
+    lam_i = np.where(mesh.boundary_vertex_mask, 0.0, lam)
+    eta_f = flux_terms(problem, u, lam_i, cheap["rho"])
+    osc = integrals(problem, 1, moments=True)["osc"]
+    part = eta_f + osc
+    guaranteed, reason, case = True, [], "i"
+    c_disc_k = np.zeros(mesh.n_triangles)
+    c_lin_k = np.zeros(mesh.n_triangles)
+    for side_name, ell_key in (("lower", "ell_plus"), ("upper", "ell_minus")):
+        if (problem.psi if side_name == "lower" else problem.chi) is None:
+            continue
+        side = _Side(problem, side_name)
+        if side.kind == "p1":
+            c_disc_k += cheap["c_p1"][side_name]
+            continue
+        cd, cl, ok, why = _obstacle_terms(problem, side, u, cheap[ell_key])
+        c_disc_k += cd
+        c_lin_k += cl
+        if side.kind in ("guaranteed", "estimated"):
+            case = "ii"
+        if not ok:
+            guaranteed = False
+            reason.append(why)
+    eta_bd = boundary_lifting(problem)
+    if callable(problem.g):
+        sup_phi = problem._cache["sup_phi"]
+        touch = sup_phi > 0
+        if touch.any():
+            # w carries the lifting on boundary triangles: (ell, sup|phi|) covers its effect
+            ell = cheap["ell_plus"] + cheap["ell_minus"]
+            pressure = _cut.positive_product(
+                mesh.vertices, mesh.triangles, np.ones(mesh.n_vertices), np.ascontiguousarray(ell)
+            )
+            c_disc_k += sup_phi * pressure
+    nc = cheap["nc"] + eta_bd
+    flux_norm = float(np.sqrt(np.sum(part * part)))
+    a = float(np.sqrt(np.sum((part + nc) ** 2))) + cheap["eta_glob"]
+    a0 = flux_norm + cheap["eta_glob"]
+    d = float(np.sqrt(np.sum(nc * nc)))
+    c_disc = float(np.sum(c_disc_k))
+    c_lin = float(np.sum(c_lin_k))
+    c = max(c_disc + c_lin, 0.0)
+    eta_1, eta_2 = _forms(a, a0, d, c)
+    d_bd = float(np.sqrt(np.sum(eta_bd * eta_bd)))
+    components = {
+        "eta_disc": flux_norm + 2.0 * d_bd + math.sqrt(max(c_disc, 0.0)),
+        "eta_lin": cheap["eta_eps"] + 2.0 * cheap["D_nc"] + math.sqrt(max(c_lin, 0.0)),
+        "eta_alg": cheap["eta_alg"],
+    }
+    indicators = np.sqrt(part * part + nc * nc + np.maximum(c_disc_k + c_lin_k, 0.0))
+    terms = {
+        "a": a,
+        "a0": a0,
+        "D": d,
+        "c": c,
+        "c_disc": c_disc,
+        "c_lin": c_lin,
+        "eta_glob": cheap["eta_glob"],
+        "D_nc": cheap["D_nc"],
+        "D_boundary": d_bd,
+        "flux": flux_norm,
+    }
+    return ObstacleEstimate(
+        eta=min(eta_1, eta_2),
+        eta_I=eta_1,
+        eta_II=eta_2,
+        components=components,
+        indicators=indicators,
+        terms=terms,
+        guaranteed=guaranteed,
+        case=case,
+        reason="; ".join(reason),
+    )
