@@ -186,18 +186,24 @@ def cheap_terms(problem, u, lam, r=None) -> dict:
 
 
 # ----------------------------------------------------------------- flux
-def flux_terms(problem, u, lam_signed, rho) -> np.ndarray:
+def flux_terms(problem, u, lam_signed, rho, shaped=None) -> np.ndarray:
     """``eta_F,K`` of the equilibrated RT1 flux of the iterate (§3), shape (M,).
 
     The two-membrane patch kernel (:func:`fastmem.kernels.flux.reconstruct_colored`)
     with membrane 1 = this membrane and membrane 2 given a compatible zero
     problem (residual ``-lam``): its patch solves share membrane 1's
-    factorisation (same tension) and give the zero flux.
+    factorisation (same tension) and give the zero flux.  ``shaped``: the
+    shaped contact loads of :func:`shaped_load` (their vertices carry no
+    ``lam_a phi_a``; the kernel adds their moments instead).
     """
     mesh = problem.mesh
     u = np.ascontiguousarray(u, dtype=np.float64)
     bnd = np.ascontiguousarray(mesh.boundary_vertex_mask)
-    lam_i = np.where(bnd, 0.0, lam_signed)
+    lam_all = np.where(bnd, 0.0, lam_signed)
+    lam_i = lam_all if shaped is None else np.where(shaped["flags"], 0.0, lam_all)
+    chi_row = chi_mom = None
+    if shaped is not None:
+        chi_row, chi_mom = shaped["chi_row"], shaped["chi_mom"]
     mom = integrals(problem, 1, moments=True)["moments"]
     const = float(problem.f) if mom is None else 0.0
     mom = np.zeros((1, 3, 3)) if mom is None else mom
@@ -220,7 +226,7 @@ def flux_terms(problem, u, lam_signed, rho) -> np.ndarray:
         zero,
         lam_i,
         np.ascontiguousarray(rho),
-        -lam_i,
+        -lam_all,
         mu,
         mu,
         const,
@@ -231,8 +237,8 @@ def flux_terms(problem, u, lam_signed, rho) -> np.ndarray:
         np.zeros(1),
         int(np.diff(mesh.patch_ptr).max()),
         numba.get_num_threads(),
-        None,
-        None,
+        chi_row,
+        chi_mom,
     )
     bary, w = triangle_rule(5)
     out = _kf.flux_estimators(
@@ -248,6 +254,67 @@ def flux_terms(problem, u, lam_signed, rho) -> np.ndarray:
         np.ascontiguousarray(w),
     )
     return out[0]
+
+
+# ----------------------------------------------------------------- load shaping
+def shaped_load(problem, side_name: str, ell: np.ndarray):
+    r"""Load shaping at the jumps of a piecewise-constant obstacle (docs/obstacle.md §5.5).
+
+    At a vertex whose patch sees the obstacle below its nodal value on some
+    triangles (a vertex on a step edge), the pressure ``ell_a`` is put on the
+    triangles ``omega_a^=`` where the obstacle equals its nodal value:
+    ``ell^a = s_a phi_a 1_{omega_a^=}`` with ``s_a = ell_a B_a / (phi_a, 1_{omega_a^=})``
+    (the same mass, non-negative, P1 on each triangle: Lemma 3.1 holds).
+
+    Returns None when no vertex qualifies, else a dict with ``flags`` (N,),
+    ``chi_row`` (M,), ``chi_mom`` (S, 3, 3) (signed: the upper obstacle's load
+    pushes down) and ``values`` (M, 3): the contact load's vertex values on
+    every triangle, for the complementarity term.
+    """
+    mesh = problem.mesh
+    tris = mesh.triangles
+    side = _Side(problem, side_name)
+    psi_k = side.sign * np.asarray(side.func.triangle_values(mesh), dtype=np.float64)
+    equal = side.h[tris] <= psi_k[:, None]  # (M, 3): the obstacle reaches the nodal value on K
+    lower = ~equal & (ell[tris] > 0)
+    flags = np.zeros(mesh.n_vertices, dtype=bool)
+    flags[tris[lower]] = True
+    area3 = np.repeat(mesh.areas[:, None] / 3.0, 3, axis=1)
+    mass_eq = np.zeros(mesh.n_vertices)
+    np.add.at(mass_eq, tris, np.where(equal, area3, 0.0))
+    flags &= mass_eq > 0
+    values = np.where(flags[tris], 0.0, ell[tris])
+    if not flags.any():
+        return None
+    scale = np.zeros(mesh.n_vertices)
+    scale[flags] = ell[flags] * mesh.lumped_mass[flags] / mass_eq[flags]
+    on = flags[tris] & equal  # (M, 3): shaped vertex i puts s_a phi_a on K
+    values = values + np.where(on, scale[tris], 0.0)
+    rows = np.flatnonzero(on.any(axis=1))
+    chi_row = np.full(mesh.n_triangles, -1, dtype=np.int32)
+    chi_row[rows] = np.arange(rows.size, dtype=np.int32)
+    mass = (np.eye(3) + 1.0) / 12.0
+    s_on = np.where(on[rows], scale[tris[rows]], 0.0)  # (S, 3): s_a of the shaped vertex i
+    chi_mom = side.sign * s_on[:, :, None] * mass[None] * mesh.areas[rows][:, None, None]
+    return {"flags": flags, "chi_row": chi_row, "chi_mom": chi_mom, "values": values}
+
+
+def _merge_shaped(mesh, shaped: dict):
+    """One kernel input from the shaped loads of both sides (None without any)."""
+    if not shaped:
+        return None
+    if len(shaped) == 1:
+        return next(iter(shaped.values()))
+    full = np.zeros((mesh.n_triangles, 3, 3))
+    flags = np.zeros(mesh.n_vertices, dtype=bool)
+    for load in shaped.values():
+        rows = np.flatnonzero(load["chi_row"] >= 0)
+        full[rows] += load["chi_mom"][load["chi_row"][rows]]
+        flags |= load["flags"]
+    rows = np.flatnonzero(np.abs(full).sum(axis=(1, 2)) > 0)
+    chi_row = np.full(mesh.n_triangles, -1, dtype=np.int32)
+    chi_row[rows] = np.arange(rows.size, dtype=np.int32)
+    return {"flags": flags, "chi_row": chi_row, "chi_mom": full[rows]}
 
 
 # ----------------------------------------------------------------- Dirichlet lifting
@@ -267,7 +334,7 @@ def boundary_lifting(problem) -> np.ndarray:
     mesh = problem.mesh
     out = np.zeros(mesh.n_triangles)
     if callable(problem.g):
-        edges = mesh.boundary_edges if hasattr(mesh, "boundary_edges") else _boundary_edges(mesh)
+        edges = _boundary_edges(mesh)
         tri, p, q, o = edges
         xv = mesh.vertices
         s, ws = np.polynomial.legendre.leggauss(_GAUSS_POINTS)
@@ -507,17 +574,28 @@ def _side_pieces(problem, side: _Side, tri: np.ndarray):
     return {k: (v[rows] if k not in ("ref", "npc") else v) for k, v in data.items()}
 
 
-def _obstacle_terms(problem, side: _Side, u, ell):
-    """Per-triangle ``(c_disc, c_lin)`` of one obstacle (§5.2), and whether guaranteed."""
+def _tri_xy(mesh):
+    c = mesh.vertices[mesh.triangles]
+    return np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
+
+
+def _obstacle_terms(problem, side: _Side, u, ell, shaped=None):
+    """Per-triangle ``(c_disc, c_lin)`` of one obstacle (§5.2), and whether guaranteed.
+
+    ``shaped``: the shaped contact load of this side (:func:`shaped_load`).
+    """
     mesh = problem.mesh
     m = mesh.n_triangles
     us = side.sign * u  # the iterate seen from this obstacle (mirrored for the upper one)
     tris = mesh.triangles
     c_disc = np.zeros(m)
     # infeasibility piece (ell, (psi_h - u)+)_K: the lin part (0 at feasible iterates)
-    c_lin = _cut.positive_product(
-        mesh.vertices, tris, np.ascontiguousarray(side.h - us), np.ascontiguousarray(ell)
-    )
+    if shaped is None:
+        c_lin = _cut.positive_product(
+            mesh.vertices, tris, np.ascontiguousarray(side.h - us), np.ascontiguousarray(ell)
+        )
+    else:
+        c_lin = _pos_product(*_tri_xy(mesh), (side.h - us)[tris], shaped["values"])
     if side.kind == "piecewise-constant":
         psi_k = side.sign * np.asarray(side.func.triangle_values(mesh), dtype=np.float64)
         if psi_k.shape != (m,):
@@ -529,10 +607,7 @@ def _obstacle_terms(problem, side: _Side, u, ell):
         ok = bool(np.all(side.h[tris].min(axis=1) >= psi_k))
         gap = us[tris] - psi_k[:, None]
         c_disc = _pos_product(
-            np.ascontiguousarray(mesh.vertices[tris][..., 0]),
-            np.ascontiguousarray(mesh.vertices[tris][..., 1]),
-            gap,
-            ell[tris],
+            *_tri_xy(mesh), gap, ell[tris] if shaped is None else shaped["values"]
         )
         return (
             c_disc,
@@ -630,7 +705,13 @@ def estimate(problem, u, lam, r=None, cheap: dict | None = None) -> ObstacleEsti
     if cheap is None:
         cheap = cheap_terms(problem, u, lam, r)
     lam_i = np.where(mesh.boundary_vertex_mask, 0.0, lam)
-    eta_f = flux_terms(problem, u, lam_i, cheap["rho"])
+    shaped = {}
+    for side_name, ell_key in (("lower", "ell_plus"), ("upper", "ell_minus")):
+        if problem.obstacle_kind(side_name) == "piecewise-constant":
+            load = shaped_load(problem, side_name, cheap[ell_key])
+            if load is not None:
+                shaped[side_name] = load
+    eta_f = flux_terms(problem, u, lam_i, cheap["rho"], _merge_shaped(mesh, shaped))
     osc = integrals(problem, 1, moments=True)["osc"]
     part = eta_f + osc
     guaranteed, reason, case = True, [], "i"
@@ -643,7 +724,7 @@ def estimate(problem, u, lam, r=None, cheap: dict | None = None) -> ObstacleEsti
         if side.kind == "p1":
             c_disc_k += cheap["c_p1"][side_name]
             continue
-        cd, cl, ok, why = _obstacle_terms(problem, side, u, cheap[ell_key])
+        cd, cl, ok, why = _obstacle_terms(problem, side, u, cheap[ell_key], shaped.get(side_name))
         c_disc_k += cd
         c_lin_k += cl
         if side.kind in ("guaranteed", "estimated"):

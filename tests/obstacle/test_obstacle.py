@@ -18,8 +18,9 @@ def _step41_like(n, **kw):
     mesh = fm.Mesh.square(n)
     x, y = mesh.vertices.T
     lower = -0.3 + 0.2 * x  # nodal data: a P1 obstacle
-    return fm.Obstacle(mesh, mu=1.0, f=lambda x, y: -10.0 * np.cos(3 * x), lower=lower,
-                       upper=0.05, **kw)
+    return fm.Obstacle(
+        mesh, mu=1.0, f=lambda x, y: -10.0 * np.cos(3 * x), lower=lower, upper=0.05, **kw
+    )
 
 
 # ----------------------------------------------------------------- bad input
@@ -31,7 +32,11 @@ def _step41_like(n, **kw):
         ({"upper": -0.2, "g": 0.0}, DataError, "upper obstacle is below the boundary value"),
         ({"lower": -0.1, "upper": -0.2, "g": -0.15}, DataError, "lower > upper"),
         ({"lower": np.full(25, np.nan)}, DataError, "lower is NaN or infinite"),
-        ({"upper": lambda x, y: np.where(x > 0.5, np.inf, 1.0)}, DataError, r"upper\(x, y\) returned NaN"),
+        (
+            {"upper": lambda x, y: np.where(x > 0.5, np.inf, 1.0)},
+            DataError,
+            r"upper\(x, y\) returned NaN",
+        ),
         ({"lower": "high"}, InputTypeError, "lower must be None"),
         ({"lower": np.zeros(7)}, DataError, "one value per vertex"),
         ({"lower": -1.0, "mu": -1.0}, ParameterError, "mu must be positive"),
@@ -74,13 +79,16 @@ def test_methods_agree_and_discrete_complementarity_holds():
     problem = _step41_like(32)
     out = {m: fm.solve(problem, method=m) for m in ("exact", "exact-amg", "inexact")}
     ex = out["exact"]
-    assert ex.converged and ex.eta_components["eta_lin"] == 0.0
+    assert ex.converged
+    assert ex.eta_components["eta_lin"] == 0.0
     ii = problem.mesh.interior_vertices
     u, lam = ex.u[ii], ex.lam[ii]
     psi, chi = problem.psi[ii], problem.chi[ii]
     # discrete complementarity: both sets non-empty, signs and contact exact
-    assert (lam > 0).sum() > 20 and (lam < 0).sum() > 20
-    assert np.all(u >= psi - 1e-12) and np.all(u <= chi + 1e-12)
+    assert (lam > 0).sum() > 20
+    assert (lam < 0).sum() > 20
+    assert np.all(u >= psi - 1e-12)
+    assert np.all(u <= chi + 1e-12)
     assert np.all(np.abs(u[lam > 0] - psi[lam > 0]) <= 1e-14)
     assert np.all(np.abs(u[lam < 0] - chi[lam < 0]) <= 1e-14)
     # the residual is zero on every interior vertex of the exact solution
@@ -90,7 +98,8 @@ def test_methods_agree_and_discrete_complementarity_holds():
     inexact = out["inexact"]
     assert inexact.converged
     c = inexact.eta_components
-    assert c["eta_alg"] <= 0.1 * c["eta_disc"] and c["eta_lin"] <= 0.1 * c["eta_disc"]
+    assert c["eta_alg"] <= 0.1 * c["eta_disc"]
+    assert c["eta_lin"] <= 0.1 * c["eta_disc"]
     # the inexact solution is as accurate as the estimate says
     assert _energy(problem, inexact.u - ex.u) <= inexact.eta
 
@@ -137,7 +146,8 @@ def test_bound_above_error_for_every_method_and_perturbed_iterates(n):
         e = est.estimate(coarse, u, lam)
         err = _energy(fine, ref.u - mat @ u)
         assert e.eta >= err, (scale, e.eta, err)
-        assert e.eta_lin > 0.0 and e.eta_alg > 0.0
+        assert e.eta_lin > 0.0
+        assert e.eta_alg > 0.0
         assert e.eta_I <= e.eta_disc + e.eta_lin + e.eta_alg + 1e-12
 
 
@@ -151,7 +161,8 @@ def test_archive_round_trip_and_info(tmp_path):
     np.testing.assert_array_equal(back.u, res.u)
     np.testing.assert_array_equal(back.lower, problem.psi)
     np.testing.assert_array_equal(back.upper, problem.chi)
-    assert back.eta == res.eta and back.contact_area == res.contact_area
+    assert back.eta == res.eta
+    assert back.contact_area == res.contact_area
     from fastmem.io.archive import info
 
     summary = info(path)
@@ -165,7 +176,8 @@ def test_solve_to_tolerance_refines_where_needed():
     first = fm.solve(problem, method="exact")
     res = fm.solve(problem, tol=first.eta / 3)
     table = res.adaptivity
-    assert res.converged and res.eta <= first.eta / 3
+    assert res.converged
+    assert res.eta <= first.eta / 3
     assert table["n_vertices"][-1] > mesh.n_vertices
     assert np.all(np.diff(table["n_vertices"]) > 0)
     # adaptive: fewer vertices than the uniform mesh with the same bound would need
