@@ -23,14 +23,18 @@ from pathlib import Path
 import numpy as np
 
 from ..about import package_version
+from ..adapt.obstacle import refine_problem
 from ..config import set_threads
 from ..errors import FastmemError, MemoryLimitError, ParameterError, closest_name
+from ..fem.obstacle import Obstacle
 from ..fem.scene import Scene
 from ..io.archive import export, info, load
 from ..io.writer import ARCHIVE_SUFFIXES, EXPORT_SUFFIXES, check_output, companion_files
 from ..memory import MEMORY_LIMIT_ENV, check_memory, memory_limit
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
+from ..problems.obstacles import REFERENCE_OBSTACLES, exact_error, reference_obstacle
+from ..solver.nested import interpolation_matrix
 from .plot import add_parser as _add_plot
 from .sweep import add_sweep_parser, extend_plot_parser
 from .warmup import KernelMeter, WarmUp, kernels_cached, start_compile_helper, warm_up
@@ -42,6 +46,21 @@ logger = logging.getLogger(__name__)
 DEFAULT_N = 128
 DEFAULT_OUTPUT = "fastmem-result.h5"
 METHOD_CHOICES = ("inexact", "exact-amg", "exact")
+#: ``fastmem run --problem``: the two membranes, a constant obstacle, the reference obstacles
+PROBLEM_CHOICES = ("membranes", "obstacle", *REFERENCE_OBSTACLES)
+#: boundary value of membrane 1 in the default scene
+DEFAULT_G = 0.1
+
+
+def _describe_obstacle(args, problem) -> str:
+    if args.problem != "obstacle":
+        return f"{args.problem} (docs/obstacle.md §8)"
+    sides = ", ".join(
+        f"{name} = {value:g}"
+        for name, value in (("lower", args.lower), ("upper", args.upper))
+        if value is not None
+    )
+    return f"obstacle: mu = {args.mu:g}, f = {args.f:g}, g = {problem.g:g}, {sides}"
 
 
 def _out(text: str = "") -> None:
@@ -116,11 +135,30 @@ def _build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--refine", type=int, default=0, help="uniform refinements applied to the mesh (default 0)"
     )
+    r.add_argument(
+        "--problem",
+        default="membranes",
+        metavar="{" + ",".join(PROBLEM_CHOICES) + "}",
+        help="membranes: the two-membrane scene (default); obstacle: one membrane above "
+        "--lower and/or below --upper (constants) with load --f, tension --mu and boundary "
+        "value --g; ball, step41, twosided: the reference obstacle problems "
+        "(docs/obstacle.md §8) on --n cells per side",
+    )
+    o = r.add_argument_group("the obstacle problem (--problem obstacle)")
+    o.add_argument("--lower", type=float, default=None, help="constant lower obstacle")
+    o.add_argument("--upper", type=float, default=None, help="constant upper obstacle")
+    o.add_argument("--mu", type=float, default=1.0, help="tension (default 1)")
+    o.add_argument("--f", type=float, default=-10.0, help="constant load (default -10)")
     r.add_argument("--mu1", type=float, default=1.0, help="tension of membrane 1 (default 1)")
     r.add_argument("--mu2", type=float, default=1.0, help="tension of membrane 2 (default 1)")
     r.add_argument("--f1", type=float, default=-1.0, help="constant load f1 (default -1)")
     r.add_argument("--f2", type=float, default=1.0, help="constant load f2 (default 1)")
-    r.add_argument("--g", type=float, default=0.1, help="boundary value of u1 (default 0.1)")
+    r.add_argument(
+        "--g",
+        type=float,
+        default=None,
+        help="boundary value of u1 (default 0.1); of the obstacle problem's membrane (default 0)",
+    )
     r.add_argument(
         "--method",
         default=None,
@@ -334,6 +372,15 @@ def _kernels_label(quiet: bool) -> None:
 
 
 def _build_mesh(args) -> Scene:
+    if args.problem in REFERENCE_OBSTACLES:
+        if args.mesh is not None:
+            raise ParameterError(
+                f"--problem {args.problem} brings its own domain: use --n, not --mesh"
+            )
+        problem = reference_obstacle(args.problem, DEFAULT_N if args.n is None else args.n)
+        for _ in range(args.refine):
+            problem = _refined_obstacle(problem)
+        return problem
     if args.mesh is not None:
         mesh = Mesh.read(args.mesh)
     else:
@@ -341,7 +388,29 @@ def _build_mesh(args) -> Scene:
         mesh = Mesh.lshape(n) if args.domain == "lshape" else Mesh.square(n)
     for _ in range(args.refine):
         mesh = mesh.refine()
-    return Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=args.g)
+    if args.problem == "obstacle":
+        if args.lower is None and args.upper is None:
+            raise ParameterError("--problem obstacle needs --lower, --upper or both")
+        g = 0.0 if args.g is None else args.g
+        return Obstacle(mesh, mu=args.mu, f=args.f, g=g, lower=args.lower, upper=args.upper)
+    g = DEFAULT_G if args.g is None else args.g
+    return Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=g)
+
+
+def _refined_obstacle(problem):
+    """Return the same reference problem on the red refinement of its mesh."""
+    fine = problem.mesh.refine()
+
+    class _Red:  # red refinement keeps the coarse vertices first; midpoints average
+        @staticmethod
+        def prolong(v):
+            return interpolation_matrix(problem.mesh, fine) @ v
+
+        @staticmethod
+        def inherit(v):
+            return np.repeat(v, 4)
+
+    return refine_problem(problem, fine, _Red)
 
 
 def _scene_and_kernels(args, method: str, adaptive: bool) -> tuple[Scene, float, float]:
@@ -404,6 +473,17 @@ def _cmd_run(args) -> int:
         )
     if args.refine < 0:
         raise ParameterError(f"--refine must be >= 0, got {args.refine}")
+    if args.problem not in PROBLEM_CHOICES:
+        hint = closest_name(args.problem, PROBLEM_CHOICES)
+        raise ParameterError(
+            f"--problem must be one of {', '.join(PROBLEM_CHOICES)}, got {args.problem!r}"
+            + (f"; did you mean {hint!r}?" if hint else "")
+        )
+    if args.problem != "membranes" and args.path != "auto":
+        raise ParameterError(
+            f"--path {args.path} is an option of the two-membrane problem; "
+            f"--problem {args.problem} has one formulation (drop --path)"
+        )
     outputs = _outputs(args)  # before any work: a bad path must not cost a solve
     if args.memory_limit is not None:  # also for the mesh constructors' own check
         memory_limit(args.memory_limit)  # a bad value is refused here, naming it
@@ -419,7 +499,9 @@ def _cmd_run(args) -> int:
             check_memory(nv * size, nt * size, method, not args.no_estimate, args.memory_limit)
     if args.threads is not None or args.blas_threads is not None:
         set_threads(numba=args.threads, blas=args.blas_threads)
-    if args.mesh is not None:
+    if args.problem in REFERENCE_OBSTACLES:
+        source = f"{args.problem} n={DEFAULT_N if args.n is None else args.n}"
+    elif args.mesh is not None:
         source = str(args.mesh)
     else:
         source = f"{args.domain} n={DEFAULT_N if args.n is None else args.n}"
@@ -430,10 +512,13 @@ def _cmd_run(args) -> int:
     scene, t_mesh, t_kernels = _scene_and_kernels(args, method, adaptive)
     mesh = scene.mesh
     _out(f"  mesh              {mesh.n_vertices} vertices, {mesh.n_triangles} triangles")
-    _out(
-        f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), g = {args.g:g}, "
-        f"method = {method}"
-    )
+    if isinstance(scene, Obstacle):
+        _out(f"  problem           {_describe_obstacle(args, scene)}, method = {method}")
+    else:
+        _out(
+            f"  mu = ({args.mu1:g}, {args.mu2:g}), f = ({args.f1:g}, {args.f2:g}), "
+            f"g = {scene.g:g}, method = {method}"
+        )
     for path, existed in outputs:
         if existed:
             _out(f"  {path} exists and will be replaced when the run ends")
@@ -442,7 +527,10 @@ def _cmd_run(args) -> int:
             f"{name} {getattr(args, name):g}" for name in ("tol", "rtol") if getattr(args, name)
         )
         _out(f"  solving to {goal} by adaptive refinement")
-        adapt["level_monitor"] = _LevelMonitor(not args.quiet)
+        if not isinstance(scene, Obstacle):
+            adapt["level_monitor"] = _LevelMonitor(not args.quiet)
+    if isinstance(scene, Obstacle):
+        return _run_obstacle(args, scene, method, adapt, adaptive, outputs, t_mesh, t_kernels)
     result = solve(
         scene,
         method=method,
@@ -505,6 +593,110 @@ def _cmd_run(args) -> int:
     return 0 if result.converged else 1
 
 
+class _ObstacleMonitor(_Table):
+    """Live table of an obstacle solve: one line per Newton-min step."""
+
+    header = (
+        f"{'lev':>3} {'k':>3} {'vertices':>9} {'inner':>5} {'|A-|':>8} {'|A+|':>8} "
+        f"{'changed':>7} {'eta_disc':>10} {'eta_lin':>10} {'eta_alg':>10} {'eta':>10}"
+    )
+
+    def __call__(self, row: dict) -> None:
+        if not self.enabled:
+            return
+        num = _Monitor._number
+        _out(
+            f"{row['level']:>3d} {row['step']:>3d} {row['n_vertices']:>9d} {row['inner']:>5d} "
+            f"{row['active_lower']:>8d} {row['active_upper']:>8d} {row['changed']:>7d} "
+            f"{num(row['eta_disc'])} {num(row['eta_lin'])} {num(row['eta_alg'])} "
+            f"{num(row['eta'])}"
+        )
+
+
+class _ObstacleLevels(_Table):
+    """One line per mesh of an obstacle solve to a tolerance."""
+
+    header = (
+        f"{'mesh':>4} {'vertices':>9} {'eta':>10} {'target':>10} {'eta_disc':>10} "
+        f"{'eta_lin':>10} {'eta_alg':>10} {'marked':>7} {'newton':>6} {'cg':>5} {'sec':>7}"
+    )
+
+    def __call__(self, row: dict) -> None:
+        if not self.enabled:
+            return
+        _out(
+            f"{row['level']:>4d} {row['n_vertices']:>9d} {row['eta']:>10.3e} "
+            f"{row['target']:>10.3e} {row['eta_disc']:>10.3e} {row['eta_lin']:>10.3e} "
+            f"{row['eta_alg']:>10.3e} {100 * row['marked_fraction']:>6.1f}% "
+            f"{row['newton_steps']:>6d} {row['inner_iterations']:>5d} {row['seconds']:>7.2f}"
+        )
+
+
+def _run_obstacle(args, problem, method, adapt, adaptive, outputs, t_mesh, t_kernels) -> int:
+    """Solve an obstacle problem for ``fastmem run`` and print the summary."""
+    if adaptive:
+        adapt["level_monitor"] = _ObstacleLevels(not args.quiet)
+    result = solve(
+        problem,
+        method=method,
+        max_newton=args.max_newton,
+        monitor=None if adaptive else _ObstacleMonitor(not args.quiet),
+        **adapt,
+        estimate=not args.no_estimate,
+        memory_limit=args.memory_limit,
+        gamma_alg=args.gamma_alg,
+        gamma_lin=args.gamma_lin,
+        nested=False if args.no_nested else "auto",
+    )
+    result.timings["mesh"] = t_mesh
+    result.timings["kernels"] = t_kernels
+    reason = "criteria not met"
+    if adaptive:
+        reason = result.parameters["adaptivity"]["stop_reason"]
+    status = "converged" if result.converged else f"NOT CONVERGED ({reason})"
+    _out()
+    _out(f"  status            {status}")
+    if adaptive:
+        table = result.adaptivity
+        _out(
+            f"  adaptive meshes   {len(table['level'])}: {table['n_vertices'][0]} -> "
+            f"{result.mesh.n_vertices} vertices, eta {table['eta'][0]:.3e} -> "
+            f"{table['eta'][-1]:.3e}"
+        )
+    _out(f"  Newton steps on the finest mesh: {result.n_newton}")
+    lo, up = int(result.active_lower.sum()), int(result.active_upper.sum())
+    _out(
+        f"  contact           {lo} vertices on the lower obstacle, {up} on the upper one; "
+        f"area {result.contact_area:.6g}"
+    )
+    if result.estimate is not None:
+        parts = result.estimate.components
+        label = "guaranteed" if result.estimate.totals.get("guaranteed", 1.0) else "ESTIMATED"
+        _out(f"  error bound eta   {result.eta:.4e}   ({label}: |||u - u_h||| <= eta)")
+        for key, name in (
+            ("eta_disc", "discretisation"),
+            ("eta_lin", "linearisation"),
+            ("eta_alg", "algebraic"),
+        ):
+            _out(f"    {key:<15} {parts[key]:.4e}   ({name})")
+        why = result.parameters.get("estimate", {}).get("reason")
+        if why:
+            _out(f"  note              {why}")
+    error = None
+    if args.problem in REFERENCE_OBSTACLES:
+        error = exact_error(problem, result.u, result.mesh)
+    if error is not None:
+        _out(
+            f"  exact error       {error:.4e}   (effectivity eta / error {result.eta / error:.3f})"
+        )
+    _out(
+        f"  seconds           {result.timings['total']:.3f} solve, {t_kernels:.3f} kernels "
+        f"(compile/load), {t_mesh:.3f} mesh"
+    )
+    _write_outputs(result, outputs)
+    return 0 if result.converged else 1
+
+
 def _cmd_info(args) -> int:
 
     summary = info(args.file)
@@ -521,7 +713,20 @@ def _cmd_info(args) -> int:
     _out(f"  method / path     {summary['method']} / {summary['path']}")
     _out(f"  converged         {summary['converged']} after {summary['n_newton']} Newton steps")
     params = summary["parameters"]
-    for key in ("mu1", "mu2", "f1", "f2", "g"):
+    if params.get("problem") == "obstacle":
+        kinds = {
+            "p1": "P1",
+            "guaranteed": "with envelope: guaranteed terms",
+            "piecewise-constant": "piecewise constant",
+            "estimated": "estimated terms",
+        }
+        _out("  problem           obstacle (docs/obstacle.md)")
+        for side in ("lower", "upper"):
+            value = params.get(side)
+            if value is not None:
+                desc = value.get("value", value.get("name", value["kind"]))
+                _out(f"  {side:<17} {desc} ({kinds.get(params.get(side + '_kind'), '')})")
+    for key in ("mu1", "mu2", "mu", "f1", "f2", "f", "g"):
         if key in params:
             value = params[key]
             if isinstance(value, dict) and value.get("kind") == "constant":

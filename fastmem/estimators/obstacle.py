@@ -35,6 +35,7 @@ from ..fem.loaddata import integrals
 from ..fem.quadrature import triangle_rule
 from ..kernels import cut as _cut
 from ..kernels import flux as _kf
+from ..kernels import obstacle as _kob
 from .flux import _coloring, _mu_array
 from .terms import friedrichs_constant, mass_matrix
 
@@ -477,17 +478,43 @@ class _Side:
         return mm, mp, lam_up
 
 
-def _triangle_envelope(problem, side: _Side):
-    """``delta_K``, ``delta'_K`` of every triangle (§5.2 band test), cached per side."""
+def _triangle_envelope(problem, side: _Side, need_exact):
+    """``delta_K``, ``delta'_K`` (§5.2 band test): exact where asked, bounds elsewhere.
+
+    ``need_exact(bound_delta, bound_delta_p)`` returns the triangles that need
+    their own envelope given the global bounds ``1/2 M r_K^2`` with ``M`` the
+    envelope of the mesh's bounding box (two triangles covering it: the
+    obstacle's envelope must hold there).  Cached per side; triangles enter
+    the exact set as the band moves.
+    """
     key = f"tri_env_{side.side}"
-    if key not in problem._cache:
-        mesh = problem.mesh
+    mesh = problem.mesh
+    cache = problem._cache.get(key)
+    if cache is None:
+        x0, x1, y0, y1 = mesh.bounding_box
+        bx = np.array([[x0, x1, x1], [x0, x1, x0]], dtype=np.float64)
+        by = np.array([[y0, y0, y1], [y0, y1, y1]], dtype=np.float64)
+        mm, mp, _ = side.envelope(bx, by)
         c = mesh.vertices[mesh.triangles]
-        px, py = np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
-        mm, mp, _ = side.envelope(px, py)
-        r2 = _enclosing_radius(px, py) ** 2
-        problem._cache[key] = (0.5 * mm * r2, 0.5 * mp * r2)
-    return problem._cache[key]
+        r2 = _enclosing_radius(np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1]))
+        r2 *= r2
+        cache = {
+            "delta": 0.5 * float(np.max(mm)) * r2,
+            "delta_p": 0.5 * float(np.max(mp)) * r2,
+            "r2": r2,
+            "exact": np.zeros(mesh.n_triangles, dtype=bool),
+        }
+        problem._cache[key] = cache
+    tri = np.asarray(need_exact(cache["delta"], cache["delta_p"]))
+    tri = tri[~cache["exact"][tri]]
+    if tri.size:
+        c = mesh.vertices[mesh.triangles[tri]]
+        mm, mp, _ = side.envelope(np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1]))
+        r2 = cache["r2"][tri]
+        cache["delta"][tri] = 0.5 * mm * r2
+        cache["delta_p"][tri] = 0.5 * mp * r2
+        cache["exact"][tri] = True
+    return cache["delta"], cache["delta_p"]
 
 
 def _piece_data(problem, side: _Side, tri: np.ndarray):
@@ -540,37 +567,40 @@ def _estimated_pressure(problem, side, px, py):
 
 
 def _side_pieces(problem, side: _Side, tri: np.ndarray):
-    """Piece data for ``tri``, cached across iterates (the band moves little)."""
+    """Piece data of the triangles ``tri``, cached across iterates (the band moves little).
+
+    Returns the cache: ``slot`` (M,) (the block of each cached triangle, -1 for
+    none) and the piece arrays in blocks of ``npc`` rows, appended as new
+    triangles enter the band.
+    """
     key = f"pieces_{side.side}"
     cache = problem._cache.get(key)
     if cache is None:
-        cache = {"tri": np.zeros(0, dtype=np.int64), "data": None}
-    have = cache["tri"]
-    missing = np.setdiff1d(tri, have, assume_unique=True)
+        cache = {"slot": np.full(problem.mesh.n_triangles, -1, dtype=np.int64), "data": None}
+        problem._cache[key] = cache
+    slot = cache["slot"]
+    missing = tri[slot[tri] < 0]
     if missing.size:
         new = _piece_data(problem, side, missing)
+        start = 0 if cache["data"] is None else cache["size"]
+        slot[missing] = start + np.arange(missing.size)
         if cache["data"] is None:
-            allt, data = missing, new
+            cache["data"] = new
         else:
-            allt = np.concatenate([have, missing])
-            data = {
-                k: (
-                    np.concatenate([cache["data"][k], new[k]])
-                    if k not in ("ref", "npc")
-                    else new[k]
-                )
-                for k in new
+            old = cache["data"]
+            cache["data"] = {
+                k: (np.concatenate([old[k], v]) if k not in ("ref", "npc") else v)
+                for k, v in new.items()
             }
-        order = np.argsort(allt, kind="stable")
-        npc = new["npc"]
-        rows = (order[:, None] * npc + np.arange(npc)[None, :]).ravel()
-        data = {k: (v[rows] if k not in ("ref", "npc") else v) for k, v in data.items()}
-        cache = {"tri": allt[order], "data": data}
-        problem._cache[key] = cache
+        cache["size"] = start + missing.size
+    return cache
+
+
+def _select_pieces(cache, tri):
+    """Return the cached piece rows of ``tri`` (the NumPy reference path)."""
     data = cache["data"]
     npc = data["npc"]
-    pos = np.searchsorted(cache["tri"], tri)
-    rows = (pos[:, None] * npc + np.arange(npc)[None, :]).ravel()
+    rows = (cache["slot"][tri][:, None] * npc + np.arange(npc)[None, :]).ravel()
     return {k: (v[rows] if k not in ("ref", "npc") else v) for k, v in data.items()}
 
 
@@ -579,10 +609,33 @@ def _tri_xy(mesh):
     return np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
 
 
-def _obstacle_terms(problem, side: _Side, u, ell, shaped=None):
+def _band_numpy(side, band, d, us, ell, line1, tris):
+    """Compute the band terms by NumPy over the pieces (the reference of the kernel)."""
+    ref, npc = d["ref"], d["npc"]
+    u_t = np.einsum("pvk,bk->bpv", ref, us[tris[band]]).reshape(-1, 3)
+    ell_t = np.einsum("pvk,bk->bpv", ref, ell[tris[band]]).reshape(-1, 3)
+    px, py = d["px"], d["py"]
+    first = np.repeat(line1[band], npc)
+    part = np.zeros(px.shape[0])
+    if first.any():
+        z = u_t[first] - d["psi"][first] + d["delta_p"][first][:, None]
+        part[first] += _pos_product(px[first], py[first], z, ell_t[first])
+    y = d["U"] - ell_t
+    z = d["psi"] + d["delta"][:, None] - u_t
+    part += _pos_weighted(px, py, y, z)
+    c_disc = part.reshape(-1, npc).sum(axis=1)
+    c_lin = np.zeros(band.size)
+    if side.other_h is not None:
+        oh_t = np.einsum("pvk,bk->bpv", ref, side.other_h[tris[band]]).reshape(-1, 3)
+        c_lin = _pos_weighted(px, py, y, u_t - oh_t).reshape(-1, npc).sum(axis=1)
+    return c_disc, c_lin
+
+
+def _obstacle_terms(problem, side: _Side, u, ell, shaped=None, reference=False):
     """Per-triangle ``(c_disc, c_lin)`` of one obstacle (§5.2), and whether guaranteed.
 
-    ``shaped``: the shaped contact load of this side (:func:`shaped_load`).
+    ``shaped``: the shaped contact load of this side (:func:`shaped_load`);
+    ``reference``: the band by NumPy (:func:`_band_numpy`) instead of the kernel.
     """
     mesh = problem.mesh
     m = mesh.n_triangles
@@ -619,45 +672,49 @@ def _obstacle_terms(problem, side: _Side, u, ell, shaped=None):
                 f"the nodal values of the {side.side} obstacle are not a majorant on every triangle"
             ),
         )
-    delta_k, delta_pk = (
-        _triangle_envelope(problem, side)
-        if side.kind == "guaranteed"
-        else (
-            np.zeros(m),
-            np.zeros(m),
-        )
-    )
     gap_h = us[tris] - side.h[tris]  # (M, 3)
+    gap_min = gap_h.min(axis=1)
     has_ell = (ell[tris] > 0).any(axis=1)
+    if side.kind == "guaranteed":
+        delta_k, delta_pk = _triangle_envelope(
+            problem, side, lambda d, dp: np.flatnonzero(has_ell | (gap_min < d))
+        )
+    else:
+        delta_k = delta_pk = np.zeros(m)
     concave_ok = (delta_pk == 0.0) & (gap_h.max(axis=1) <= 0.0)
     line1 = has_ell & ~concave_ok
     upper_viol = np.zeros(m, dtype=bool)
     if side.other_h is not None:
         upper_viol = ((us - side.other_h)[tris] > 0).any(axis=1)
-    line2 = (gap_h.min(axis=1) < delta_k) | upper_viol
+    line2 = (gap_min < delta_k) | upper_viol
     if side.kind == "estimated":
         line2 |= gap_h.min(axis=1) <= 0.0
     band = np.flatnonzero(line1 | line2)
     if band.size == 0:
         return c_disc, c_lin, side.kind == "guaranteed", ""
-    d = _side_pieces(problem, side, band)
-    ref, npc = d["ref"], d["npc"]
-    u_t = np.einsum("pvk,bk->bpv", ref, us[tris[band]]).reshape(-1, 3)
-    ell_t = np.einsum("pvk,bk->bpv", ref, ell[tris[band]]).reshape(-1, 3)
-    px, py = d["px"], d["py"]
-    first = np.repeat(line1[band], npc)
-    part = np.zeros(px.shape[0])
-    if first.any():
-        z = u_t[first] - d["psi"][first] + d["delta_p"][first][:, None]
-        part[first] += _pos_product(px[first], py[first], z, ell_t[first])
-    y = d["U"] - ell_t
-    z = d["psi"] + d["delta"][:, None] - u_t
-    part += _pos_weighted(px, py, y, z)
-    c_disc[band] = part.reshape(-1, npc).sum(axis=1)
-    if side.other_h is not None and upper_viol.any():
-        oh_t = np.einsum("pvk,bk->bpv", ref, side.other_h[tris[band]]).reshape(-1, 3)
-        lin = _pos_weighted(px, py, y, u_t - oh_t)
-        c_lin[band] += lin.reshape(-1, npc).sum(axis=1)
+    cache = _side_pieces(problem, side, band)
+    if reference:
+        cd, cl = _band_numpy(side, band, _select_pieces(cache, band), us, ell, line1, tris)
+    else:
+        d = cache["data"]
+        other = side.other_h if side.other_h is not None and upper_viol.any() else np.zeros(0)
+        cd, cl = _kob.band_terms(
+            mesh.vertices,
+            tris,
+            band,
+            np.ascontiguousarray(cache["slot"][band]),
+            d["ref"],
+            np.ascontiguousarray(us),
+            np.ascontiguousarray(ell),
+            d["psi"],
+            d["delta"],
+            d["delta_p"],
+            d["U"],
+            np.ascontiguousarray(line1[band]),
+            np.ascontiguousarray(other, dtype=np.float64),
+        )
+    c_disc[band] = cd
+    c_lin[band] += cl
     guaranteed = side.kind == "guaranteed"
     return (
         c_disc,

@@ -86,7 +86,9 @@ GradientFunction = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarr
 # --------------------------------------------------------------------------- validation
 
 
-def _check_real(name: str, value, *, positive: bool = False, nonnegative: bool = False) -> float:
+def _check_real(
+    name: str, value, *, positive: bool = False, nonnegative: bool = False, nonzero: bool = False
+) -> float:
     """Return ``value`` as a finite float, or raise :class:`ParameterError` naming ``name``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise ParameterError(f"{name} must be a finite real number, got {value!r}")
@@ -97,6 +99,8 @@ def _check_real(name: str, value, *, positive: bool = False, nonnegative: bool =
         raise ParameterError(f"{name} must be positive, got {value!r}")
     if nonnegative and not value >= 0.0:
         raise ParameterError(f"{name} must be non-negative, got {value!r}")
+    if nonzero and value == 0.0:
+        raise ParameterError(f"{name} must be non-zero, got {value!r}")
     return value
 
 

@@ -263,14 +263,13 @@ def newton_min_obstacle(problem, options, u, lam, level=0, disc_hint=None, rows=
         nlo, nup = sysm.sets(u[ii], lam[ii])
         same = np.array_equal(nlo, lo) and np.array_equal(nup, up)
         if method == "inexact":
-            if est is None:
-                est = _est.estimate(problem, u, lam)
-                eta_disc = est.eta_disc
-            c = est.components
-            stop = (
-                c["eta_lin"] <= options["gamma_lin"] * c["eta_disc"]
-                and c["eta_alg"] <= options["gamma_alg"] * c["eta_disc"]
-            )
+            stop = False
+            if est is not None:  # a fresh eta_disc: the Newton test may pass
+                c = est.components
+                stop = (
+                    c["eta_lin"] <= options["gamma_lin"] * c["eta_disc"]
+                    and c["eta_alg"] <= options["gamma_alg"] * c["eta_disc"]
+                )
         else:
             stop = same
         _check_row(
@@ -307,11 +306,20 @@ def newton_min_obstacle(problem, options, u, lam, level=0, disc_hint=None, rows=
 
 
 def _inexact_solve(problem, sysm, cg, act, options, eta_disc):
-    """CG on the masked system stopped by the estimators; returns (x, its, est, eta_disc)."""
+    """CG on the masked system stopped by the estimators; returns (x, its, est, eta_disc).
+
+    Every ``check_every`` iterations the cheap terms (``eta_alg`` and a lower
+    bound of ``eta_lin``) are evaluated.  The inner stop
+    ``eta_alg <= gamma_alg max(eta_disc, eta_lin)`` is tried with the last
+    ``eta_disc`` known (of the previous step or level); the flux is
+    reconstructed (a fresh ``eta_disc``, ``est`` returned) only when the
+    Newton test ``eta_lin <= gamma_lin eta_disc`` could pass as well, so that a
+    step that cannot be the last costs no flux.  ``est`` is None otherwise.
+    """
     g_alg = options["gamma_alg"]
+    g_lin = options["gamma_lin"]
     every = options["check_every"]
     start = cg.iterations
-    est = None
     while True:
         for _ in range(every):
             if not cg.step():
@@ -324,18 +332,19 @@ def _inexact_solve(problem, sysm, cg, act, options, eta_disc):
         eta_lin = cheap["eta_eps"] + 2.0 * cheap["D_nc"]  # c_lin needs the pieces: a lower bound
         eta_alg = cheap["eta_alg"]
         done = cg.stuck or its >= options["max_inner"] or cg.at_roundoff(EXACT_AMG_RTOL)
-        could = eta_disc is not None and eta_alg <= g_alg * max(eta_disc, eta_lin)
-        if could or done or (eta_disc is None and eta_alg <= g_alg * eta_lin):
-            est = _est.estimate(problem, u, lam, r, cheap)
-            eta_disc = est.eta_disc
-            if done or est.eta_alg <= g_alg * max(est.eta_disc, est.eta_lin):
-                return cg.x, its, est, eta_disc
-        elif eta_disc is None and its >= 4 * every and its % (4 * every) == 0:
-            # no eta_disc yet (first step of the coarsest level): measure it once
-            est = _est.estimate(problem, u, lam, r, cheap)
-            eta_disc = est.eta_disc
-            if est.eta_alg <= g_alg * max(est.eta_disc, est.eta_lin):
-                return cg.x, its, est, eta_disc
+        if eta_disc is None:
+            # no eta_disc yet (first step of the coarsest level): measure it when the
+            # iteration has settled against eta_lin, or every few checks
+            if not (done or eta_alg <= g_alg * eta_lin or its % (4 * every) == 0):
+                continue
+        elif not (done or eta_alg <= g_alg * max(eta_disc, eta_lin)):
+            continue
+        elif not done and eta_lin > g_lin * eta_disc:
+            return cg.x, its, None, eta_disc  # this step cannot be the last: no flux
+        est = _est.estimate(problem, u, lam, r, cheap)
+        eta_disc = est.eta_disc
+        if done or est.eta_alg <= g_alg * max(est.eta_disc, est.eta_lin):
+            return cg.x, its, est, eta_disc
 
 
 def _initial(problem):

@@ -23,6 +23,7 @@ import numba
 import numpy as np
 
 from ..errors import ArchiveError, InputTypeError
+from ..fem.obstacle import Obstacle
 from ..fem.scene import Scene
 from ..io.archive import load
 from ..pipeline import solve
@@ -50,10 +51,14 @@ class _Job:
 def _summary(result, name: str, params: dict, archive: str) -> dict:
     """Return the table row of a finished run, from its Result (in memory or loaded)."""
     totals = {} if result.estimate is None else result.estimate.totals
+    levels = result.parameters.get("solver", {}).get("levels")
     if result.adaptivity is not None:
-        cg = int(np.sum(result.adaptivity["inner"]))
-    else:
-        cg = int(sum(lv.get("inner", 0) for lv in result.parameters["solver"]["levels"]))
+        column = "inner" if "inner" in result.adaptivity else "inner_iterations"  # obstacle
+        cg = int(np.sum(result.adaptivity[column]))
+    elif levels is not None:
+        cg = int(sum(lv.get("inner", 0) for lv in levels))
+    else:  # an obstacle result: one history row per Newton step
+        cg = int(np.sum(result.history.get("inner", 0)))
     return {
         "run": name,
         "key": _key(params),
@@ -199,9 +204,10 @@ def _solve_claimed(job: _Job, archive: Path, rel: str, claims: Path, holder: lis
     stage = getattr(job.factory, "__qualname__", "the scene factory")  # its own name
     try:
         scene = job.factory(**job.params)
-        if not isinstance(scene, Scene):
+        if not isinstance(scene, (Scene, Obstacle)):
             raise InputTypeError(
-                f"{job.factory.__qualname__}() returned {type(scene).__name__}, not a fastmem.Scene"
+                f"{job.factory.__qualname__}() returned {type(scene).__name__}, not a "
+                "fastmem.Scene or fastmem.Obstacle"
             )
         t_scene = time.perf_counter() - t0
         stage = "solve"

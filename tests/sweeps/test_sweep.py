@@ -61,6 +61,11 @@ def make_scene(mu2=1.0, g=0.1, n=16, fail="", gate=""):
     return fm.Scene(fm.Mesh.square(n), mu=(1.0, mu2), f=(-1.0, 1.0), g=g)
 
 
+def make_obstacle(lower=-0.1, n=16):
+    """Obstacle factory of the tests: one membrane under f = -10 above ``lower``."""
+    return fm.Obstacle(fm.Mesh.square(n), mu=1.0, f=-10.0, g=0.0, lower=lower)
+
+
 def _wait_for_gate(gate):
     """Record this process (the tests kill it) and wait until the file ``gate`` exists."""
     with open(gate + ".started", "a") as fh:
@@ -620,3 +625,20 @@ print("cluster ok")
     )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "cluster ok" in out.stdout
+
+
+def test_sweep_of_an_obstacle_factory(client, tmp_path):
+    grid = {"lower": [-0.2, -0.1, -0.05]}
+    out = tmp_path / "obstacles"
+    table = fm.sweep(make_obstacle, grid, out, client=client, solve_options={"method": "exact"})
+    assert (table.status == "done").all()
+    for row in table.itertuples():
+        ref = fm.solve(make_obstacle(lower=row.lower), method="exact")
+        got = fm.load(row.archive)
+        assert type(got).__name__ == "ObstacleResult"
+        assert_array_equal(got.u, ref.u)
+        assert row.eta == ref.eta
+        assert row.contact_fraction == ref.contact_fraction
+    # a higher obstacle touches more of the membrane
+    fractions = table.sort_values("lower").contact_fraction.to_numpy()
+    assert np.all(np.diff(fractions) > 0)
