@@ -49,6 +49,8 @@ BENCHMARKS = (
     "memory",
     "coldstart",
     "sweep",
+    "obstacle",
+    "peers",
 )
 
 
@@ -423,7 +425,36 @@ def _coldstart(d, v):
         v["cold_patch_s"] = f"{patch:.1f}"
 
 
+def _obstacle(d, v):
+    ball = d.get("ball") or {}
+    rows = ball.get("rows") or []
+    if rows:
+        lo, hi = ball["effectivity_range"]
+        v["obstacle_ball_n"] = f"{rows[0]['n']}-{rows[-1]['n']}"
+        v["obstacle_ball_eff"] = f"{lo:.2f}-{hi:.2f}"
+        v["obstacle_ball_rate"] = f"{ball['min_rate_h']:.2f}" if ball["min_rate_h"] else None
+        if ball.get("max_nodal_error_256") is not None:
+            v["obstacle_ball_max256"] = f"{ball['max_nodal_error_256']:.3e}"
+    sp = d.get("speed") or {}
+    if sp:
+        v["obstacle_speed_n"] = sp["n"]
+        v["obstacle_speed_pu"] = f"{sp['first_pu']:.2f}"
+    ad = d.get("ball_adaptive") or {}
+    if ad and ad.get("rate_eta_N") is not None:
+        v["obstacle_adapt_rate"] = f"{ad['rate_eta_N']:.2f}"
+        v["obstacle_adapt_eff_max"] = f"{ad['effectivity_max']:.2f}"
+
+
+def _peers(d, v):
+    if d.get("skipped"):
+        v["peers_status"] = f"skipped ({d['skipped']})"
+        return
+    v["peers_status"] = f"{len(d.get('rows', []))} rows"
+
+
 _EXTRACT = {
+    "obstacle": _obstacle,
+    "peers": _peers,
     "unstructured": _unstructured,
     "assembly": _assembly,
     "poisson_unit": _poisson,
@@ -521,6 +552,12 @@ def summary_lines(quick=False, folder=None):
         f"{g('adapt_lshape_loop_over_final')}; refine {g('adapt_lshape_refine_pu_max')} PU/level "
         f"(max); manufactured effectivity {g('adapt_man_eff_final')} (final level); big: "
         f"{g('adapt_big_triangles')} triangles, {g('adapt_big_peak_gb')} GB",
+        f"obstacle      ball n={g('obstacle_ball_n')}: effectivity {g('obstacle_ball_eff')}, rate "
+        f"{g('obstacle_ball_rate')}, max nodal error at 256 {g('obstacle_ball_max256')} (PETSc "
+        f"9.34e-5); adaptive rate {g('obstacle_adapt_rate')} in N, effectivity <= "
+        f"{g('obstacle_adapt_eff_max')}; first solve n={g('obstacle_speed_n')}: "
+        f"{g('obstacle_speed_pu')} PU",
+        f"peers         PETSc SNES VI: {g('peers_status')}",
     ]
     return lines
 

@@ -136,6 +136,8 @@ def indicators(estimate) -> np.ndarray:
     r"""Per-triangle refinement indicators :math:`\eta_K^2` of an estimate (module docstring)."""
     if getattr(estimate, "marking", None) is not None:
         return estimate.marking
+    if "eta_K" in estimate.maps:  # an obstacle estimate: the indicators themselves
+        return np.asarray(estimate.maps["eta_K"]) ** 2
     return refinement_indicators(estimate.maps)
 
 

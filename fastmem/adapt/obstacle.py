@@ -30,6 +30,7 @@ __all__ = ["ADAPTIVITY_COLUMNS", "refine_problem", "solve_obstacle"]
 
 logger = logging.getLogger(__name__)
 
+#: Columns of ``result.adaptivity`` (those of :data:`fastmem.adapt.loop.ADAPTIVITY_COLUMNS`).
 ADAPTIVITY_COLUMNS = (
     "level",
     "n_vertices",
@@ -38,12 +39,13 @@ ADAPTIVITY_COLUMNS = (
     "eta_disc",
     "eta_lin",
     "eta_alg",
-    "energy",
+    "energy_norm",
     "target",
     "marked_fraction",
-    "newton_steps",
-    "inner_iterations",
-    "seconds",
+    "newton",
+    "inner",
+    "solve_seconds",
+    "refine_seconds",
 )
 
 
@@ -192,12 +194,13 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
             "eta_disc": est.eta_disc,
             "eta_lin": est.eta_lin,
             "eta_alg": est.eta_alg,
-            "energy": energy,
+            "energy_norm": energy,
             "target": target,
             "marked_fraction": 0.0,
-            "newton_steps": level.steps,
-            "inner_iterations": level.inner,
-            "seconds": seconds,
+            "newton": level.steps,
+            "inner": level.inner,
+            "solve_seconds": seconds,
+            "refine_seconds": 0.0,
         }
         if est.eta <= target:
             converged, stop_reason = True, "tolerance"
@@ -219,7 +222,7 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
         u[bnd] = new_problem.boundary_values[bnd]
         lam[bnd] = 0.0
         problem = new_problem
-        row["seconds"] += time.perf_counter() - t2
+        row["refine_seconds"] = time.perf_counter() - t2
         _append(table, row, monitor)
     timings["solve"] = time.perf_counter() - t0 - timings["assembly"]
     timings["total"] = time.perf_counter() - t0
@@ -232,7 +235,7 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
     return _result(problem, level, options, rows, timings, adaptivity, extra)
 
 
-_INT_COLUMNS = ("level", "n_vertices", "n_triangles", "newton_steps", "inner_iterations")
+_INT_COLUMNS = ("level", "n_vertices", "n_triangles", "newton", "inner")
 
 
 def _append(table, row, monitor):

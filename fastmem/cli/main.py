@@ -52,6 +52,45 @@ PROBLEM_CHOICES = ("membranes", "obstacle", *REFERENCE_OBSTACLES)
 DEFAULT_G = 0.1
 
 
+#: the two-membrane data of ``fastmem run`` and their defaults
+MEMBRANE_DEFAULTS = {"mu1": 1.0, "mu2": 1.0, "f1": -1.0, "f2": 1.0}
+#: the constant obstacle problem's data and their defaults
+OBSTACLE_DEFAULTS = {"mu": 1.0, "f": -10.0}
+
+
+def _check_problem_options(args) -> None:
+    """Refuse data of one problem given to another, naming the option and the fix."""
+    given = lambda names: [n for n in names if getattr(args, n) is not None]  # noqa: E731
+    if args.problem == "membranes":
+        extra = given(("lower", "upper", "mu", "f"))
+        if extra:
+            raise ParameterError(
+                f"--{extra[0]} is an option of --problem obstacle; the two-membrane scene "
+                "takes --mu1, --mu2, --f1, --f2 (or add --problem obstacle)"
+            )
+        for name, value in MEMBRANE_DEFAULTS.items():
+            if getattr(args, name) is None:
+                setattr(args, name, value)
+        return
+    extra = given(MEMBRANE_DEFAULTS)
+    if extra:
+        raise ParameterError(
+            f"--{extra[0]} is an option of the two-membrane scene; --problem {args.problem} "
+            "takes --mu, --f, --g, --lower, --upper (obstacle) or none (reference problems)"
+        )
+    if args.problem != "obstacle":
+        extra = given(("lower", "upper", "mu", "f", "g"))
+        if extra:
+            raise ParameterError(
+                f"--{extra[0]} cannot change the reference problem {args.problem} "
+                "(docs/obstacle.md §8); use --problem obstacle for your own data"
+            )
+        return
+    for name, value in OBSTACLE_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
 def _describe_obstacle(args, problem) -> str:
     if args.problem != "obstacle":
         return f"{args.problem} (docs/obstacle.md §8)"
@@ -147,12 +186,12 @@ def _build_parser() -> argparse.ArgumentParser:
     o = r.add_argument_group("the obstacle problem (--problem obstacle)")
     o.add_argument("--lower", type=float, default=None, help="constant lower obstacle")
     o.add_argument("--upper", type=float, default=None, help="constant upper obstacle")
-    o.add_argument("--mu", type=float, default=1.0, help="tension (default 1)")
-    o.add_argument("--f", type=float, default=-10.0, help="constant load (default -10)")
-    r.add_argument("--mu1", type=float, default=1.0, help="tension of membrane 1 (default 1)")
-    r.add_argument("--mu2", type=float, default=1.0, help="tension of membrane 2 (default 1)")
-    r.add_argument("--f1", type=float, default=-1.0, help="constant load f1 (default -1)")
-    r.add_argument("--f2", type=float, default=1.0, help="constant load f2 (default 1)")
+    o.add_argument("--mu", type=float, default=None, help="tension (default 1)")
+    o.add_argument("--f", type=float, default=None, help="constant load (default -10)")
+    r.add_argument("--mu1", type=float, default=None, help="tension of membrane 1 (default 1)")
+    r.add_argument("--mu2", type=float, default=None, help="tension of membrane 2 (default 1)")
+    r.add_argument("--f1", type=float, default=None, help="constant load f1 (default -1)")
+    r.add_argument("--f2", type=float, default=None, help="constant load f2 (default 1)")
     r.add_argument(
         "--g",
         type=float,
@@ -393,6 +432,9 @@ def _build_mesh(args) -> Scene:
             raise ParameterError("--problem obstacle needs --lower, --upper or both")
         g = 0.0 if args.g is None else args.g
         return Obstacle(mesh, mu=args.mu, f=args.f, g=g, lower=args.lower, upper=args.upper)
+    for name, value in MEMBRANE_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     g = DEFAULT_G if args.g is None else args.g
     return Scene(mesh, mu=(args.mu1, args.mu2), f=(args.f1, args.f2), g=g)
 
@@ -484,6 +526,7 @@ def _cmd_run(args) -> int:
             f"--path {args.path} is an option of the two-membrane problem; "
             f"--problem {args.problem} has one formulation (drop --path)"
         )
+    _check_problem_options(args)
     outputs = _outputs(args)  # before any work: a bad path must not cost a solve
     if args.memory_limit is not None:  # also for the mesh constructors' own check
         memory_limit(args.memory_limit)  # a bad value is refused here, naming it
@@ -606,8 +649,8 @@ class _ObstacleMonitor(_Table):
             return
         num = _Monitor._number
         _out(
-            f"{row['level']:>3d} {row['step']:>3d} {row['n_vertices']:>9d} {row['inner']:>5d} "
-            f"{row['active_lower']:>8d} {row['active_upper']:>8d} {row['changed']:>7d} "
+            f"{row['level']:>3d} {row['k']:>3d} {row['n_vertices']:>9d} {row['inner']:>5d} "
+            f"{row['active_lower']:>8d} {row['active_upper']:>8d} {row['n_changed']:>7d} "
             f"{num(row['eta_disc'])} {num(row['eta_lin'])} {num(row['eta_alg'])} "
             f"{num(row['eta'])}"
         )
@@ -628,7 +671,8 @@ class _ObstacleLevels(_Table):
             f"{row['level']:>4d} {row['n_vertices']:>9d} {row['eta']:>10.3e} "
             f"{row['target']:>10.3e} {row['eta_disc']:>10.3e} {row['eta_lin']:>10.3e} "
             f"{row['eta_alg']:>10.3e} {100 * row['marked_fraction']:>6.1f}% "
-            f"{row['newton_steps']:>6d} {row['inner_iterations']:>5d} {row['seconds']:>7.2f}"
+            f"{row['newton']:>6d} {row['inner']:>5d} "
+            f"{row['solve_seconds'] + row['refine_seconds']:>7.2f}"
         )
 
 

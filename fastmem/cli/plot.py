@@ -469,6 +469,23 @@ def _draw_contact(ax, tri, active: np.ndarray, *, fill: bool) -> None:
     ax.legend(handles=[proxy], loc="upper right", fontsize="small", framealpha=0.85)
 
 
+_GAP_TITLE = {
+    "lower": "gap $u_h - \\psi_h$ and contact set",
+    "upper": "gap $\\chi_h - u_h$ and contact set",
+    "both": "distance to the nearer obstacle and contact sets",
+}
+
+
+def _is_obstacle(result) -> bool:
+    return (result.parameters or {}).get("problem") == "obstacle"
+
+
+def _sides(result) -> str:
+    lower = getattr(result, "lower", None) is not None
+    upper = getattr(result, "upper", None) is not None
+    return "both" if lower and upper else ("lower" if lower else "upper")
+
+
 def plot_solution(result, axes=None):
     """Draw the two membranes and the contact set of a result.
 
@@ -511,6 +528,15 @@ def plot_solution(result, axes=None):
         (u2, "$u_2$ (membrane 2)", "viridis"),
         (u1 - u2, "gap $u_1 - u_2$ and contact set", "magma"),
     )
+    if _is_obstacle(result):
+        lower = getattr(result, "lower", None)
+        obstacle = lower if lower is not None else result.upper
+        which = "lower obstacle $\\psi_h$" if lower is not None else "upper obstacle $\\chi_h$"
+        panels = (
+            (u1, "membrane $u_h$", "viridis"),
+            (np.asarray(obstacle, dtype=np.float64), which, "viridis"),
+            (np.asarray(result.gap, dtype=np.float64), _GAP_TITLE[_sides(result)], "magma"),
+        )
     for ax, (values, title, cmap) in zip(axes, panels, strict=True):
         mappable = ax.tripcolor(tri, values, shading="gouraud", cmap=cmap)
         ax.figure.colorbar(mappable, ax=ax, shrink=0.9)
@@ -542,14 +568,25 @@ def plot_contact_pressure(result, ax=None):
     top = float(np.nanmax(lam)) if lam.size else 0.0
     low = float(np.nanmin(lam)) if lam.size else 0.0
     low = low if low < -1e-9 * abs(top) else 0.0  # round-off below 0 is not a scale
-    mappable = ax.tripcolor(
-        tri, lam, shading="gouraud", cmap="cividis", vmin=low, vmax=max(top, low + 1e-300)
-    )
+    vmin, vmax, extend = low, max(top, low + 1e-300), "neither"
+    if _is_obstacle(result) and lam.size:
+        # line loads at the jumps of a rough obstacle (nodal values ~ q / h, on refined
+        # meshes many vertices) would flatten the rest: beyond 5 times the median
+        # percentile of |lam| on the contact set the scale is cut, the bar extended
+        act = np.asarray(result.active, dtype=bool)
+        if act.any():
+            cap = 3.0 * float(np.median(np.abs(lam[act])))
+            if cap > 0.0 and max(top, -low) > 5.0 * cap:
+                vmin, vmax, extend = max(low, -cap), min(top, cap), "both"
+    mappable = ax.tripcolor(tri, lam, shading="gouraud", cmap="cividis", vmin=vmin, vmax=vmax)
     mappable.set_gid("lam")
-    ax.figure.colorbar(mappable, ax=ax, shrink=0.9)
+    ax.figure.colorbar(mappable, ax=ax, shrink=0.9, extend=extend)
     _draw_contact(ax, tri, np.asarray(result.active, dtype=bool), fill=False)
     span = f"max {top:.3g}" + (f", min {low:.2g}" if low < 0.0 else "")  # min < 0: an iterate
-    _decorate(ax, rf"contact pressure $\lambda$ ({span})")
+    title = rf"contact pressure $\lambda$ ({span})"
+    if _is_obstacle(result):
+        title = rf"multiplier $\lambda$ ({span}; > 0: lower obstacle, < 0: upper)"
+    _decorate(ax, title)
     return ax
 
 
@@ -597,7 +634,7 @@ def plot_indicators(result, ax=None):
     _require_matplotlib()
     ax = _one_axes(ax, (6.4, 4.8))
     est = result.estimate
-    if est is None or "eta_F1" not in est.maps:
+    if est is None or not ("eta_F1" in est.maps or "eta_K" in est.maps):
         _no_data(ax, "no error indicators\n(solve with estimate=True)")
         ax.set_title(r"error indicators $\eta_K$")
         ax.set_axis_off()

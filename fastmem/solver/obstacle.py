@@ -234,6 +234,7 @@ def newton_min_obstacle(problem, options, u, lam, level=0, disc_hint=None, rows=
     eta_disc = disc_hint
     converged = False
     inner_total = 0
+    total = rows["inner_total"][-1] if rows.get("inner_total") else 0
     k = 0
     x = u[ii].copy()
     for k in range(1, options["max_newton"] + 1):
@@ -272,19 +273,24 @@ def newton_min_obstacle(problem, options, u, lam, level=0, disc_hint=None, rows=
                 )
         else:
             stop = same
+        total += inner
         _check_row(
             rows,
             level=level,
-            step=k,
-            n_vertices=problem.mesh.n_vertices,
-            active_lower=int(lo.sum()),
-            active_upper=int(up.sum()),
-            changed=int(np.count_nonzero(nlo != lo) + np.count_nonzero(nup != up)),
+            k=k,
             inner=inner,
-            eta=np.nan if est is None else est.eta,
+            inner_total=total,
+            n_active=int(lo.sum() + up.sum()),
+            n_changed=int(np.count_nonzero(nlo != lo) + np.count_nonzero(nup != up)),
             eta_disc=np.nan if est is None else est.eta_disc,
             eta_lin=np.nan if est is None else est.eta_lin,
             eta_alg=np.nan if est is None else est.eta_alg,
+            eta=np.nan if est is None else est.eta,
+            fresh_disc=int(est is not None),
+            seconds=time.perf_counter() - t0,
+            n_vertices=problem.mesh.n_vertices,
+            active_lower=int(lo.sum()),
+            active_upper=int(up.sum()),
         )
         if options.get("monitor") is not None:
             options["monitor"]({k2: v[-1] for k2, v in rows.items()})

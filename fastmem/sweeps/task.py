@@ -53,8 +53,7 @@ def _summary(result, name: str, params: dict, archive: str) -> dict:
     totals = {} if result.estimate is None else result.estimate.totals
     levels = result.parameters.get("solver", {}).get("levels")
     if result.adaptivity is not None:
-        column = "inner" if "inner" in result.adaptivity else "inner_iterations"  # obstacle
-        cg = int(np.sum(result.adaptivity[column]))
+        cg = int(np.sum(result.adaptivity["inner"]))
     elif levels is not None:
         cg = int(sum(lv.get("inner", 0) for lv in levels))
     else:  # an obstacle result: one history row per Newton step

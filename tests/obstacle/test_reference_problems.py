@@ -142,3 +142,9 @@ def test_cli_constant_obstacle_and_typo(capsys):
     assert "on the lower obstacle" in capsys.readouterr().out
     assert main(["run", "--problem", "stp41", "--no-save"]) == 2
     assert "did you mean 'step41'" in capsys.readouterr().err
+    assert main(["run", "--problem", "ball", "--mu1", "2", "--no-save"]) == 2
+    assert "--mu1 is an option of the two-membrane scene" in capsys.readouterr().err
+    assert main(["run", "--lower", "0.1", "--no-save"]) == 2
+    assert "--lower is an option of --problem obstacle" in capsys.readouterr().err
+    assert main(["run", "--problem", "ball", "--g", "1", "--no-save"]) == 2
+    assert "cannot change the reference problem ball" in capsys.readouterr().err
