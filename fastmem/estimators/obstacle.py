@@ -503,16 +503,20 @@ def _triangle_envelope(problem, side: _Side, need_exact):
             "delta_p": 0.5 * float(np.max(mp)) * r2,
             "r2": r2,
             "exact": np.zeros(mesh.n_triangles, dtype=bool),
+            "U": np.zeros((mesh.n_triangles, 3)),
         }
         problem._cache[key] = cache
     tri = np.asarray(need_exact(cache["delta"], cache["delta_p"]))
     tri = tri[~cache["exact"][tri]]
     if tri.size:
         c = mesh.vertices[mesh.triangles[tri]]
-        mm, mp, _ = side.envelope(np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1]))
+        mm, mp, lam_up = side.envelope(
+            np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
+        )
         r2 = cache["r2"][tri]
         cache["delta"][tri] = 0.5 * mm * r2
         cache["delta_p"][tri] = 0.5 * mp * r2
+        cache["U"][tri] = lam_up
         cache["exact"][tri] = True
     return cache["delta"], cache["delta_p"]
 
@@ -631,11 +635,20 @@ def _band_numpy(side, band, d, us, ell, line1, tris):
     return c_disc, c_lin
 
 
-def _obstacle_terms(problem, side: _Side, u, ell, shaped=None, reference=False):
+#: A band triangle is split into pieces only where its bound on the whole triangle
+#: (s = 0) exceeds this fraction of its squared flux indicator (docs/obstacle.md §11)
+PIECE_FRACTION = 0.1
+
+
+def _obstacle_terms(problem, side: _Side, u, ell, shaped=None, reference=False, weight=None):
     """Per-triangle ``(c_disc, c_lin)`` of one obstacle (§5.2), and whether guaranteed.
 
     ``shaped``: the shaped contact load of this side (:func:`shaped_load`);
-    ``reference``: the band by NumPy (:func:`_band_numpy`) instead of the kernel.
+    ``reference``: the band by NumPy (:func:`_band_numpy`) instead of the kernel, on
+    the pieces of every band triangle.  ``weight`` (M,): the squared flux
+    indicators; with an envelope the band is first bounded on whole triangles
+    (s = 0) and only the triangles whose bound exceeds :data:`PIECE_FRACTION`
+    of their weight are split into pieces, where the smaller bound is kept.
     """
     mesh = problem.mesh
     m = mesh.n_triangles
@@ -692,12 +705,37 @@ def _obstacle_terms(problem, side: _Side, u, ell, shaped=None, reference=False):
     band = np.flatnonzero(line1 | line2)
     if band.size == 0:
         return c_disc, c_lin, side.kind == "guaranteed", ""
+    other = side.other_h if side.other_h is not None and upper_viol.any() else np.zeros(0)
+    other = np.ascontiguousarray(other, dtype=np.float64)
+    staged = weight is not None and side.kind == "guaranteed" and not reference
+    if staged:
+        env = problem._cache[f"tri_env_{side.side}"]
+        c0, l0 = _kob.band_terms(
+            mesh.vertices,
+            tris,
+            band,
+            band,
+            np.eye(3)[None],
+            np.ascontiguousarray(us),
+            np.ascontiguousarray(ell),
+            np.ascontiguousarray(side.h[tris]),
+            delta_k,
+            delta_pk,
+            env["U"],
+            np.ascontiguousarray(line1[band]),
+            other,
+        )
+        c_disc[band] = c0
+        c_lin[band] += l0
+        split = (c0 + l0) > PIECE_FRACTION * weight[band]
+        band = band[split]
+        if band.size == 0:
+            return c_disc, c_lin, True, ""
     cache = _side_pieces(problem, side, band)
     if reference:
         cd, cl = _band_numpy(side, band, _select_pieces(cache, band), us, ell, line1, tris)
     else:
         d = cache["data"]
-        other = side.other_h if side.other_h is not None and upper_viol.any() else np.zeros(0)
         cd, cl = _kob.band_terms(
             mesh.vertices,
             tris,
@@ -711,10 +749,14 @@ def _obstacle_terms(problem, side: _Side, u, ell, shaped=None, reference=False):
             d["delta_p"],
             d["U"],
             np.ascontiguousarray(line1[band]),
-            np.ascontiguousarray(other, dtype=np.float64),
+            other,
         )
+    if staged:  # both bound the same terms: keep the smaller
+        cd = np.minimum(cd, c_disc[band])
+        c_lin[band] = np.minimum(c_lin[band], cl + (c_lin[band] - l0[split]))
+    else:
+        c_lin[band] += cl
     c_disc[band] = cd
-    c_lin[band] += cl
     guaranteed = side.kind == "guaranteed"
     return (
         c_disc,
@@ -781,11 +823,19 @@ def estimate(problem, u, lam, r=None, cheap: dict | None = None) -> ObstacleEsti
         if side.kind == "p1":
             c_disc_k += cheap["c_p1"][side_name]
             continue
-        cd, cl, ok, why = _obstacle_terms(problem, side, u, cheap[ell_key], shaped.get(side_name))
+        cd, cl, ok, why = _obstacle_terms(
+            problem, side, u, cheap[ell_key], shaped.get(side_name), weight=part * part
+        )
         c_disc_k += cd
         c_lin_k += cl
         if side.kind in ("guaranteed", "estimated"):
             case = "ii"
+            if not problem.constant_mu and ok:
+                ok = False
+                why = (
+                    f"per-triangle mu with a non-P1 {side_name} obstacle: case (ii) of the "
+                    "bound is not proved there (docs/obstacle.md §10.2)"
+                )
         if not ok:
             guaranteed = False
             reason.append(why)

@@ -148,3 +148,28 @@ def test_cli_constant_obstacle_and_typo(capsys):
     assert "--lower is an option of --problem obstacle" in capsys.readouterr().err
     assert main(["run", "--problem", "ball", "--g", "1", "--no-save"]) == 2
     assert "cannot change the reference problem ball" in capsys.readouterr().err
+
+
+def test_callable_obstacle_without_envelope_is_labelled_estimated():
+    guaranteed = ball(32)
+    plain = fm.Obstacle(guaranteed.mesh, g=ball_solution, lower=lambda x, y: guaranteed.lower(x, y))
+    a = fm.solve(guaranteed, method="exact")
+    b = fm.solve(plain, method="exact")
+    np.testing.assert_array_equal(a.u, b.u)
+    assert a.estimate.totals["guaranteed"] == 1.0
+    assert b.estimate.totals["guaranteed"] == 0.0
+    assert "without envelope" in b.parameters["estimate"]["reason"]
+    # the estimated obstacle terms stay close to the guaranteed ones
+    assert b.eta == pytest.approx(a.eta, rel=0.1)
+
+
+def test_per_triangle_mu_with_a_smooth_obstacle_is_not_claimed_guaranteed():
+    problem = ball(16)
+    mu = np.ones(problem.mesh.n_triangles)
+    mu[::2] = 2.0
+    res = fm.solve(fm.Obstacle(problem.mesh, mu=mu, g=ball_solution, lower=problem.lower))
+    assert res.estimate.totals["guaranteed"] == 0.0
+    assert "§10.2" in res.parameters["estimate"]["reason"]
+    # a P1 obstacle with per-triangle mu keeps the guarantee (case (i))
+    res = fm.solve(fm.Obstacle(problem.mesh, mu=mu, f=-10.0, lower=-0.5, g=0.0))
+    assert res.estimate.totals["guaranteed"] == 1.0
