@@ -317,7 +317,7 @@ def main(argv=None):
     p.add_argument("--step41-uniform", type=int, default=256)
     p.add_argument("--speed-n", type=int, default=1024)
     args = parse(p, argv)
-    only = set(args.only or SECTIONS)
+    only = {args.only} if args.only else set(SECTIONS)
     quick = args.quick
     sizes = args.sizes or ([16, 32] if quick else [64, 128, 256, 512, 1024])
     payload = {"parameters": vars(args) | {"results": None}}
