@@ -312,7 +312,7 @@ def run_speed(n, repeat):
 
 def main(argv=None):
     p = sectioned_parser(__doc__, SECTIONS, repeat=2)
-    p.add_argument("--adapt-start", type=int, default=16)
+    p.add_argument("--adapt-start", type=int, default=32)
     p.add_argument("--adapt-uniform", type=int, default=512)
     p.add_argument("--step41-uniform", type=int, default=256)
     p.add_argument("--speed-n", type=int, default=1024)

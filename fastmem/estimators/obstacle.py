@@ -495,13 +495,12 @@ def _triangle_envelope(problem, side: _Side, need_exact):
         bx = np.array([[x0, x1, x1], [x0, x1, x0]], dtype=np.float64)
         by = np.array([[y0, y0, y1], [y0, y1, y1]], dtype=np.float64)
         mm, mp, _ = side.envelope(bx, by)
-        c = mesh.vertices[mesh.triangles]
-        r2 = _enclosing_radius(np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1]))
-        r2 *= r2
+        # the smallest enclosing disc of a triangle has radius <= diameter / sqrt(3)
+        # (Jung's theorem in the plane): a bound of r_K^2 without computing it
+        r2 = mesh.diameters**2 / 3.0
         cache = {
             "delta": 0.5 * float(np.max(mm)) * r2,
             "delta_p": 0.5 * float(np.max(mp)) * r2,
-            "r2": r2,
             "exact": np.zeros(mesh.n_triangles, dtype=bool),
             "U": np.zeros((mesh.n_triangles, 3)),
         }
@@ -510,10 +509,9 @@ def _triangle_envelope(problem, side: _Side, need_exact):
     tri = tri[~cache["exact"][tri]]
     if tri.size:
         c = mesh.vertices[mesh.triangles[tri]]
-        mm, mp, lam_up = side.envelope(
-            np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
-        )
-        r2 = cache["r2"][tri]
+        px, py = np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
+        mm, mp, lam_up = side.envelope(px, py)
+        r2 = _enclosing_radius(px, py) ** 2
         cache["delta"][tri] = 0.5 * mm * r2
         cache["delta_p"][tri] = 0.5 * mp * r2
         cache["U"][tri] = lam_up
