@@ -43,6 +43,9 @@ from ..linalg.sparse import threaded
 from .nested import NESTED_MIN_VERTICES, interpolation_matrix
 from .steps import EXACT_AMG_RTOL, gap_delta, gap_matrix
 
+#: Relative residual of the CG solves on the coarse levels of nested iteration (inexact)
+COARSE_RTOL = 1e-8
+
 __all__ = ["ObstacleLevel", "coarse_problem", "newton_min_obstacle", "solve_obstacle_levels"]
 
 logger = logging.getLogger(__name__)
@@ -253,11 +256,14 @@ def newton_min_obstacle(problem, options, u, lam, level=0, disc_hint=None, rows=
         else:
             pre = amg.prepare(threaded(mat), act)
             cg = PCG(threaded(mat), rhs, x, pre)
-            if method == "exact-amg":
-                inner = cg.solve(EXACT_AMG_RTOL, options["max_inner"])
+            if method in ("exact-amg", "coarse"):
+                rtol = EXACT_AMG_RTOL if method == "exact-amg" else COARSE_RTOL
+                inner = cg.solve(rtol, options["max_inner"])
                 x = cg.x
             else:
-                x, inner, est, eta_disc = _inexact_solve(problem, sysm, cg, act, options, eta_disc)
+                x, inner, est, eta_disc = _inexact_solve(
+                    problem, sysm, cg, act, options, eta_disc, (lo, up)
+                )
         inner_total += inner
         u = sysm.full(x)
         lam = sysm.multiplier(u, act)
@@ -304,14 +310,14 @@ def newton_min_obstacle(problem, options, u, lam, level=0, disc_hint=None, rows=
             problem.mesh.n_vertices,
             options["max_newton"],
         )
-    if method != "inexact" and options["estimate"] and options.get("final", True):
+    if method not in ("inexact", "coarse") and options["estimate"] and options.get("final", True):
         est = _est.estimate(problem, u, lam)
     return ObstacleLevel(
         problem, u, lam, est, k, inner_total, converged, time.perf_counter() - t0, rows
     )
 
 
-def _inexact_solve(problem, sysm, cg, act, options, eta_disc):
+def _inexact_solve(problem, sysm, cg, act, options, eta_disc, current):
     """CG on the masked system stopped by the estimators; returns (x, its, est, eta_disc).
 
     Every ``check_every`` iterations the cheap terms (``eta_alg`` and a lower
@@ -321,6 +327,12 @@ def _inexact_solve(problem, sysm, cg, act, options, eta_disc):
     reconstructed (a fresh ``eta_disc``, ``est`` returned) only when the
     Newton test ``eta_lin <= gamma_lin eta_disc`` could pass as well, so that a
     step that cannot be the last costs no flux.  ``est`` is None otherwise.
+
+    Without any ``eta_disc`` yet (the finest level after coarse levels solved
+    without estimates), the inner stop uses ``eta_lin`` alone (stricter) while
+    the iterate's active sets differ from the ``current`` ones (the Newton test
+    cannot pass then); once they agree, the flux is reconstructed and the tests
+    above apply.
     """
     g_alg = options["gamma_alg"]
     g_lin = options["gamma_lin"]
@@ -339,9 +351,11 @@ def _inexact_solve(problem, sysm, cg, act, options, eta_disc):
         eta_alg = cheap["eta_alg"]
         done = cg.stuck or its >= options["max_inner"] or cg.at_roundoff(EXACT_AMG_RTOL)
         if eta_disc is None:
-            # no eta_disc yet (first step of the coarsest level): measure it when the
-            # iteration has settled against eta_lin, or every few checks
-            if not (done or eta_alg <= g_alg * eta_lin or its % (4 * every) == 0):
+            lo, up = sysm.sets(cg.x, lam[sysm.ii])
+            settled = np.array_equal(lo, current[0]) and np.array_equal(up, current[1])
+            if not (done or settled):
+                if eta_alg <= g_alg * eta_lin:
+                    return cg.x, its, None, eta_disc  # the active set still moves: no flux
                 continue
         elif not (done or eta_alg <= g_alg * max(eta_disc, eta_lin)):
             continue
@@ -401,6 +415,11 @@ def solve_obstacle_levels(problem, options, initial=None):
             hint = None if est is None else 0.5 * est.eta_disc  # rate 1 in h
         opts = dict(options)
         opts["final"] = lev == len(chain) - 1
+        if options["method"] == "inexact" and not opts["final"]:
+            # a coarse level only provides the initial iterate of the next one: its
+            # linear steps to COARSE_RTOL, Newton-min until the active set repeats, no
+            # estimate (docs/obstacle.md §11)
+            opts["method"] = "coarse"
         out = newton_min_obstacle(pr, opts, u, lam, level=lev, disc_hint=hint, rows=rows)
         if not np.isfinite(out.u).all():
             raise NumericalError("Newton-min produced NaN or inf")
