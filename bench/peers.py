@@ -316,7 +316,7 @@ def fastmem_side(sizes, diagonal=DIAGONAL, repeat=3):
 
 
 def comparison(rows):
-    """fastmem's time to PETSc's finest error, against the fastest PETSc variant there."""
+    """fastmem's time to PETSc's finest error (within 1 %), against the fastest PETSc variant."""
     petsc = [r for r in rows if r.get("solver") == "petsc" and r.get("converged", True)]
     ours = [r for r in rows if r.get("solver") == "fastmem"]
     if not petsc or not ours:

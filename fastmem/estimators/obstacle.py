@@ -373,6 +373,21 @@ def boundary_lifting(problem) -> np.ndarray:
     return out
 
 
+def _boundary_curvature(problem, sign) -> float:
+    """Return a bound of the obstacle curvature for the boundary margin (0 for P1 ones)."""
+    side = "lower" if sign > 0 else "upper"
+    if problem.obstacle_kind(side) != "guaranteed":
+        return 0.0
+    key = f"curvature_{side}"
+    if key not in problem._cache:
+        x0, x1, y0, y1 = problem.mesh.bounding_box
+        bx = np.array([[x0, x1, x1], [x0, x1, x0]], dtype=np.float64)
+        by = np.array([[y0, y0, y1], [y0, y1, y1]], dtype=np.float64)
+        mm, mp, _ = _Side(problem, side).envelope(bx, by)
+        problem._cache[key] = float(max(np.max(mm), np.max(mp)))
+    return problem._cache[key]
+
+
 def _sup_per_triangle(mesh, tri, values):
     out = np.zeros(mesh.n_triangles)
     np.maximum.at(out, tri, values)
@@ -848,6 +863,23 @@ def estimate(problem, u, lam, r=None, cheap: dict | None = None) -> ObstacleEsti
                 mesh.vertices, mesh.triangles, np.ones(mesh.n_vertices), np.ascontiguousarray(ell)
             )
             c_disc_k += sup_phi * pressure
+            # the lifting may move w across an obstacle on a boundary triangle: covered
+            # only where both obstacles stay further than sup|phi| (+ delta) from u_h
+            tri = np.flatnonzero(touch)
+            for vals, sign in ((problem.psi, 1.0), (problem.chi, -1.0)):
+                if vals is None:
+                    continue
+                gap = (sign * (u - vals))[mesh.triangles[tri]].min(axis=1)
+                margin = sup_phi[tri] + 0.5 * mesh.diameters[tri] ** 2 * _boundary_curvature(
+                    problem, sign
+                )
+                if np.any(gap < margin):
+                    guaranteed = False
+                    reason.append(
+                        "an obstacle comes within the Dirichlet lifting of the callable g on "
+                        "the boundary (docs/obstacle.md §4.5): its contact terms are not covered"
+                    )
+                    break
     nc = cheap["nc"] + eta_bd
     flux_norm = float(np.sqrt(np.sum(part * part)))
     a = float(np.sqrt(np.sum((part + nc) ** 2))) + cheap["eta_glob"]

@@ -173,3 +173,13 @@ def test_per_triangle_mu_with_a_smooth_obstacle_is_not_claimed_guaranteed():
     # a P1 obstacle with per-triangle mu keeps the guarantee (case (i))
     res = fm.solve(fm.Obstacle(problem.mesh, mu=mu, f=-10.0, lower=-0.5, g=0.0))
     assert res.estimate.totals["guaranteed"] == 1.0
+
+
+def test_obstacle_near_a_callable_boundary_value_is_flagged():
+    mesh = fm.Mesh.square(16)
+    g = lambda x, y: 0.05 * np.sin(3 * x) * np.cos(2 * y)  # noqa: E731
+    near = fm.solve(fm.Obstacle(mesh, f=-10.0, g=g, lower=-0.06))
+    assert near.estimate.totals["guaranteed"] == 0.0
+    assert "§4.5" in near.parameters["estimate"]["reason"]
+    far = fm.solve(fm.Obstacle(mesh, f=-10.0, g=g, lower=-0.5))
+    assert far.estimate.totals["guaranteed"] == 1.0
