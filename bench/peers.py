@@ -382,12 +382,23 @@ def main(argv=None):
     if bad:
         p.error(f"sizes must be multiples of 4 (the coarse grid of the grid sequence): {bad}")
 
+    parameters = {k: (str(v) if k == "results" else v) for k, v in vars(args).items()}
     python, env, info = find_petsc(args.petsc_python)
     if python is None:
         print(f"bench.peers: skipped: {INSTALL_HINT}", flush=True)
         for why in info:
             progress(f"  {why}")
-        finish("peers", {"skipped": INSTALL_HINT, "probes": info, "rows": []}, args.quick)
+        # fastmem's side alone: the rows a run with PETSc would set beside it
+        fm_rows = fastmem_side(sizes, args.diagonal, args.repeat)
+        payload = {
+            "skipped": INSTALL_HINT,
+            "probes": info,
+            "parameters": parameters,
+            "sizes": sizes,
+            "fastmem": fm_rows,
+            "rows": [{"solver": "fastmem", **r} for r in fm_rows],
+        }
+        finish("peers", payload, args.quick)
         return 0
     progress(
         f"PETSc {info['petsc']} (petsc4py {info['petsc4py']}) in {python} "
@@ -447,6 +458,7 @@ def main(argv=None):
                 )
 
     payload = {
+        "parameters": parameters,
         "sizes": sizes,
         "repeat": args.repeat,
         "petsc": info,

@@ -478,6 +478,7 @@ def _scene_and_kernels(args, method: str, adaptive: bool) -> tuple[Scene, float,
             estimate=not args.no_estimate,
             adaptive=adaptive,
             unstructured=scene.mesh.coarser() is None,
+            obstacle=isinstance(scene, Obstacle),
         )
     except BaseException:
         if not args.quiet:

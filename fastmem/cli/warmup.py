@@ -49,6 +49,7 @@ from ..linalg.amg import precompile
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
+from ..problems.obstacles import ball
 from ..solver.options import METHODS
 
 logger = logging.getLogger(__name__)
@@ -343,6 +344,7 @@ def warm_up(
     adaptive: bool = False,
     unstructured: bool = False,
     general: bool = False,
+    obstacle: bool = False,
 ) -> WarmUp:
     """Compile or load every kernel a solve of this kind needs, on a tiny problem.
 
@@ -358,6 +360,10 @@ def warm_up(
         Whether its mesh has no coarser version (auxiliary coarse meshes).
     general : bool
         Whether it takes the general linear-step path (per-triangle mu).
+    obstacle : bool
+        Whether it solves an obstacle problem (:class:`fastmem.Obstacle`): a
+        tiny ball problem (docs/obstacle.md §8.1) is solved as well, which
+        compiles the obstacle band kernel.
 
     Returns
     -------
@@ -414,6 +420,8 @@ def warm_up(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             solve(scene, method=method, estimate=estimate or adaptive, **keywords)
+            if obstacle:
+                solve(ball(16), method=method, estimate=estimate or adaptive)
     finally:
         log.setLevel(level)
         if helper is not None:
