@@ -30,6 +30,7 @@ from ..fem.obstacle import Obstacle
 from ..fem.scene import Scene
 from ..io.archive import export, info, load
 from ..io.writer import ARCHIVE_SUFFIXES, EXPORT_SUFFIXES, check_output, companion_files
+from ..linalg.sparse import THREADED_ROWS
 from ..memory import MEMORY_LIMIT_ENV, check_memory, memory_limit
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
@@ -479,6 +480,7 @@ def _scene_and_kernels(args, method: str, adaptive: bool) -> tuple[Scene, float,
             adaptive=adaptive,
             unstructured=scene.mesh.coarser() is None,
             obstacle=isinstance(scene, Obstacle),
+            large=scene.mesh.n_vertices >= THREADED_ROWS,
         )
     except BaseException:
         if not args.quiet:

@@ -42,10 +42,12 @@ from numba.core.dispatcher import Dispatcher
 
 from .. import kernels
 from ..errors import ParameterError, checked_keywords
+from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, topology
 from ..kernels import flux as _kflux
 from ..linalg.amg import precompile
+from ..linalg.sparse import masked_gap
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
@@ -325,6 +327,16 @@ def _precompile_rows() -> None:
     rows.row_measures(z, z, z, interior, np.zeros(0, dtype=np.bool_), 1.0)
 
 
+def _precompile_masked() -> None:
+    """Compile the threaded gap-matrix kernels with the argument types of a solve.
+
+    The solvers use them from :data:`~fastmem.linalg.sparse.THREADED_ROWS` rows on
+    (measured: 0.5 s of compilation inside the first solve of a ball at n = 256).
+    """
+    a = assemble_stiffness(Mesh.square(4))
+    masked_gap(a, np.zeros(a.shape[0], dtype=bool))
+
+
 def _precompile_cycles() -> None:
     """Compile the multigrid cycle's kernels (hybrid sweep, threaded products)."""
     precompile()
@@ -345,6 +357,7 @@ def warm_up(
     unstructured: bool = False,
     general: bool = False,
     obstacle: bool = False,
+    large: bool = False,
 ) -> WarmUp:
     """Compile or load every kernel a solve of this kind needs, on a tiny problem.
 
@@ -364,6 +377,10 @@ def warm_up(
         Whether it solves an obstacle problem (:class:`fastmem.Obstacle`): a
         tiny ball problem (docs/obstacle.md §8.1) is solved as well, which
         compiles the obstacle band kernel.
+    large : bool
+        Whether its mesh has at least :data:`fastmem.linalg.sparse.THREADED_ROWS`
+        vertices: the active-set matrices are then built by the threaded kernels
+        of :mod:`fastmem.kernels.masked`, which the tiny solves do not reach.
 
     Returns
     -------
@@ -395,6 +412,8 @@ def warm_up(
         if unstructured:
             _precompile_locate()
     _precompile_cycles()  # (with or without a helper: the tiny solve does not reach them)
+    if large:
+        _precompile_masked()
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:

@@ -183,3 +183,14 @@ def test_obstacle_near_a_callable_boundary_value_is_flagged():
     assert "§4.5" in near.parameters["estimate"]["reason"]
     far = fm.solve(fm.Obstacle(mesh, f=-10.0, g=g, lower=-0.5))
     assert far.estimate.totals["guaranteed"] == 1.0
+
+
+def test_warm_up_of_an_obstacle_covers_its_solve():
+    from fastmem.cli import warmup
+
+    fm.warm_up("inexact", obstacle=True, large=True)
+    dispatchers = warmup._dispatchers()
+    before = {d: sum(d.stats.cache_misses.values()) for d in dispatchers}
+    fm.solve(ball(192))  # 37,249 vertices: the threaded active-set matrices
+    compiled = [d.__name__ for d in dispatchers if sum(d.stats.cache_misses.values()) != before[d]]
+    assert compiled == []
