@@ -373,19 +373,27 @@ def boundary_lifting(problem) -> np.ndarray:
     return out
 
 
+def _box_envelope(problem, side) -> tuple[float, float]:
+    """``(M-, M+)`` of an obstacle on the mesh's bounding box (two triangles), cached.
+
+    The obstacle's envelope must hold there: global bounds of its curvature.
+    """
+    key = f"box_envelope_{side.side}"
+    if key not in problem._cache:
+        x0, x1, y0, y1 = problem.mesh.bounding_box
+        bx = np.array([[x0, x1, x1], [x0, x1, x0]], dtype=np.float64)
+        by = np.array([[y0, y0, y1], [y0, y1, y1]], dtype=np.float64)
+        mm, mp, _ = side.envelope(bx, by)
+        problem._cache[key] = (float(np.max(mm)), float(np.max(mp)))
+    return problem._cache[key]
+
+
 def _boundary_curvature(problem, sign) -> float:
     """Return a bound of the obstacle curvature for the boundary margin (0 for P1 ones)."""
     side = "lower" if sign > 0 else "upper"
     if problem.obstacle_kind(side) != "guaranteed":
         return 0.0
-    key = f"curvature_{side}"
-    if key not in problem._cache:
-        x0, x1, y0, y1 = problem.mesh.bounding_box
-        bx = np.array([[x0, x1, x1], [x0, x1, x0]], dtype=np.float64)
-        by = np.array([[y0, y0, y1], [y0, y1, y1]], dtype=np.float64)
-        mm, mp, _ = _Side(problem, side).envelope(bx, by)
-        problem._cache[key] = float(max(np.max(mm), np.max(mp)))
-    return problem._cache[key]
+    return max(_box_envelope(problem, _Side(problem, side)))
 
 
 def _sup_per_triangle(mesh, tri, values):
@@ -426,18 +434,28 @@ def _red_pieces(s: int) -> np.ndarray:
     return pieces
 
 
-def _enclosing_radius(px, py) -> np.ndarray:
-    """Radius of the smallest disc containing each triangle (P, 3) coordinates."""
-    ex = np.stack([px[:, 1] - px[:, 2], px[:, 2] - px[:, 0], px[:, 0] - px[:, 1]], axis=1)
-    ey = np.stack([py[:, 1] - py[:, 2], py[:, 2] - py[:, 0], py[:, 0] - py[:, 1]], axis=1)
-    l2 = ex * ex + ey * ey
-    lmax = l2.max(axis=1)
-    # obtuse or right: half the longest edge; acute: the circumradius
-    obtuse = 2.0 * lmax >= l2.sum(axis=1)
-    area2 = np.abs(ex[:, 1] * ey[:, 2] - ey[:, 1] * ex[:, 2])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        circ = np.sqrt(l2.prod(axis=1)) / (2.0 * area2)
-    return np.where(obtuse, 0.5 * np.sqrt(lmax), circ)
+#: Relative rounding-up of :func:`enclosing_radius` (the envelope must not fall short).
+RADIUS_SLACK = 1e-13
+
+
+def enclosing_radius(px, py) -> np.ndarray:
+    r"""Radius of the smallest disc containing each triangle, rounded up by ``RADIUS_SLACK``.
+
+    Half the longest edge for a right or obtuse triangle, the circumradius
+    :math:`abc / (4|T|)` for an acute one; docs/obstacle.md Lemma 5.1 bounds
+    :math:`q_T \le r_T^2` with it.  ``px``, ``py``: vertex coordinates, shape (P, 3).
+    """
+    px = np.asarray(px, dtype=np.float64)
+    py = np.asarray(py, dtype=np.float64)
+    ex = np.roll(px, -1, axis=1) - px
+    ey = np.roll(py, -1, axis=1) - py
+    l2 = np.sort(ex * ex + ey * ey, axis=1)  # squared edge lengths, ascending
+    area2 = np.abs(ex[:, 0] * ey[:, 1] - ey[:, 0] * ex[:, 1])  # twice the area
+    obtuse = l2[:, 2] >= l2[:, 0] + l2[:, 1]
+    half_longest = 0.5 * np.sqrt(l2[:, 2])
+    safe = np.where(obtuse | (area2 == 0.0), 1.0, area2)
+    circum = np.sqrt(l2[:, 0] * l2[:, 1] * l2[:, 2]) / (2.0 * safe)
+    return np.where(obtuse, half_longest, circum) * (1.0 + RADIUS_SLACK)
 
 
 def _pos_product(px, py, z, v) -> np.ndarray:
@@ -506,16 +524,13 @@ def _triangle_envelope(problem, side: _Side, need_exact):
     mesh = problem.mesh
     cache = problem._cache.get(key)
     if cache is None:
-        x0, x1, y0, y1 = mesh.bounding_box
-        bx = np.array([[x0, x1, x1], [x0, x1, x0]], dtype=np.float64)
-        by = np.array([[y0, y0, y1], [y0, y1, y1]], dtype=np.float64)
-        mm, mp, _ = side.envelope(bx, by)
+        mm, mp = _box_envelope(problem, side)
         # the smallest enclosing disc of a triangle has radius <= diameter / sqrt(3)
         # (Jung's theorem in the plane): a bound of r_K^2 without computing it
         r2 = mesh.diameters**2 / 3.0
         cache = {
-            "delta": 0.5 * float(np.max(mm)) * r2,
-            "delta_p": 0.5 * float(np.max(mp)) * r2,
+            "delta": 0.5 * mm * r2,
+            "delta_p": 0.5 * mp * r2,
             "exact": np.zeros(mesh.n_triangles, dtype=bool),
             "U": np.zeros((mesh.n_triangles, 3)),
         }
@@ -526,7 +541,7 @@ def _triangle_envelope(problem, side: _Side, need_exact):
         c = mesh.vertices[mesh.triangles[tri]]
         px, py = np.ascontiguousarray(c[..., 0]), np.ascontiguousarray(c[..., 1])
         mm, mp, lam_up = side.envelope(px, py)
-        r2 = _enclosing_radius(px, py) ** 2
+        r2 = enclosing_radius(px, py) ** 2
         cache["delta"][tri] = 0.5 * mm * r2
         cache["delta_p"][tri] = 0.5 * mp * r2
         cache["U"][tri] = lam_up
@@ -544,7 +559,7 @@ def _piece_data(problem, side: _Side, tri: np.ndarray):
     px = np.ascontiguousarray(pts[..., 0].reshape(-1, 3))
     py = np.ascontiguousarray(pts[..., 1].reshape(-1, 3))
     psi_t = side.values(px.ravel(), py.ravel()).reshape(-1, 3)
-    r2 = _enclosing_radius(px, py) ** 2
+    r2 = enclosing_radius(px, py) ** 2
     if side.kind == "guaranteed":
         mm, mp, lam_up = side.envelope(px, py)
         delta, delta_p = 0.5 * mm * r2, 0.5 * mp * r2
@@ -565,7 +580,7 @@ def _piece_data(problem, side: _Side, tri: np.ndarray):
 
 def _estimated_pressure(problem, side, px, py):
     """``(-mu Lap psi - f)+`` at the piece vertices by a 5-point difference (not guaranteed)."""
-    h = _enclosing_radius(px, py)[:, None]  # the difference step: the piece's size
+    h = enclosing_radius(px, py)[:, None]  # the difference step: the piece's size
     x, y = px, py
     c = side.values(x.ravel(), y.ravel()).reshape(x.shape)
     lap = -4.0 * c

@@ -48,6 +48,8 @@ from .scene import (
     _real_array,
     _scalar,
     _scaled,
+    boundary_data,
+    boundary_vector,
 )
 
 __all__ = ["Obstacle", "TWO_MEMBRANE_ONLY"]
@@ -234,29 +236,8 @@ class Obstacle:
         object.__setattr__(self, name, value)
 
     def _check_g(self, g):
-        mesh = self.mesh
-        bnd = mesh.boundary_vertices
-        if callable(g):
-            vals = evaluate_callable(g, mesh.vertices[bnd, 0], mesh.vertices[bnd, 1], "g")
-            stored = g
-        elif _is_real_scalar(g):
-            stored = _scalar(g, "g", DataError)
-            if not np.isfinite(stored):
-                raise DataError(f"g must be finite, got {float(stored)!r}")
-            vals = np.full(bnd.size, stored)
-        elif isinstance(g, (np.ndarray, list, tuple)):
-            stored = _real_array(g, "g", (mesh.n_vertices,), "one value per vertex")
-            vals = stored[bnd]
-            if not np.isfinite(vals).all():
-                raise DataError("g contains NaN or inf at boundary vertices")
-        else:
-            raise InputTypeError(
-                f"g must be a number, an array or a callable g(x, y), got {type(g).__name__}"
-            )
-        out = np.zeros(mesh.n_vertices)
-        out[bnd] = vals
-        out.flags.writeable = False
-        self._cache["gB"] = out
+        stored, vals = boundary_data(self.mesh, g)
+        self._cache["gB"] = boundary_vector(self.mesh, vals)
         return stored
 
     def _check_order(self, lo, up):

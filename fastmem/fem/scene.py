@@ -178,6 +178,40 @@ def _scaled(a, mu: float):
     return out
 
 
+def boundary_data(mesh, g):
+    """Validate a boundary value ``g``; return ``(stored, values at the boundary vertices)``.
+
+    ``g`` is a number, an array of per-vertex values (only boundary vertices are
+    read) or a callable evaluated once at the boundary vertices; finite values
+    required, the datum named ``g`` in every error.
+    """
+    bnd = mesh.boundary_vertices
+    if callable(g):
+        return g, evaluate_callable(g, mesh.vertices[bnd, 0], mesh.vertices[bnd, 1], "g")
+    if _is_real_scalar(g):
+        stored = _scalar(g, "g", DataError)
+        if not np.isfinite(stored):
+            raise DataError(f"g must be finite, got {float(stored)!r}")
+        return stored, np.full(bnd.size, stored)
+    if isinstance(g, (np.ndarray, list, tuple)):
+        stored = _real_array(g, "g", (mesh.n_vertices,), "one value per vertex")
+        vals = stored[bnd]
+        if not np.isfinite(vals).all():
+            raise DataError("g contains NaN or inf at boundary vertices")
+        return stored, vals
+    raise InputTypeError(
+        f"g must be a number, an array or a callable g(x, y), got {type(g).__name__}"
+    )
+
+
+def boundary_vector(mesh, vals) -> np.ndarray:
+    """Nodal vector with ``vals`` at the boundary vertices and 0 inside, read-only."""
+    out = np.zeros(mesh.n_vertices)
+    out[mesh.boundary_vertices] = vals
+    out.flags.writeable = False
+    return out
+
+
 class Scene:
     """A two-membrane contact problem on a mesh (docs/method.md §1).
 
@@ -289,35 +323,14 @@ class Scene:
 
     def _check_g(self, g):
         mesh = self.mesh
-        bnd = mesh.boundary_vertices
-        if callable(g):
-            vals = evaluate_callable(g, mesh.vertices[bnd, 0], mesh.vertices[bnd, 1], "g")
-            stored = g
-        elif _is_real_scalar(g):
-            stored = _scalar(g, "g", DataError)
-            if not np.isfinite(stored):
-                raise DataError(f"g must be finite, got {float(stored)!r}")
-            vals = np.full(bnd.size, stored)
-        elif isinstance(g, (np.ndarray, list, tuple)):
-            stored = _real_array(g, "g", (mesh.n_vertices,), "one value per vertex")
-            vals = stored[bnd]
-            if not np.isfinite(vals).all():
-                raise DataError("g contains NaN or inf at boundary vertices")
-        else:
-            raise InputTypeError(
-                f"g must be a number, an array or a callable g(x, y), got {type(g).__name__}"
-            )
+        stored, vals = boundary_data(mesh, g)
         if (vals < 0).any():
             k = int(np.argmin(vals))
             raise ParameterError(
                 f"g must be >= 0 on the boundary (membrane 1 above membrane 2 there), "
-                f"got {float(vals[k])!r} at vertex {int(bnd[k])}"
+                f"got {float(vals[k])!r} at vertex {int(mesh.boundary_vertices[k])}"
             )
-        # The validated boundary values are the ones used: a callable is evaluated once.
-        out = np.zeros(mesh.n_vertices)
-        out[bnd] = vals
-        out.flags.writeable = False
-        self._cache["gB"] = out
+        self._cache["gB"] = boundary_vector(mesh, vals)
         return stored
 
     def check_scale(self, fmax1: float | None = None, fmax2: float | None = None) -> None:

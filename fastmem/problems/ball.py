@@ -43,6 +43,7 @@ import numpy as np
 from scipy.special import roots_legendre
 
 from ..errors import DataError, MeshError
+from ..estimators.obstacle import enclosing_radius
 from .manufactured import _as_xy
 
 __all__ = [
@@ -168,42 +169,6 @@ def triangle_distance(px, py, cx: float = 0.0, cy: float = 0.0) -> np.ndarray:
     qy = ay + t * dy
     dist = np.sqrt(np.min(qx * qx + qy * qy, axis=1))
     return np.where(inside, 0.0, dist)
-
-
-def enclosing_radius(px, py) -> np.ndarray:
-    r"""Return the radius of the smallest disc containing each triangle.
-
-    It is half the longest edge for a right or obtuse triangle and the circumradius
-    :math:`abc / (4|T|)` for an acute one. Lemma 5.1 of docs/obstacle.md bounds
-    :math:`q_T \le r_T^2` with this radius.
-
-    Parameters
-    ----------
-    px, py : ndarray of shape (P, 3)
-        Vertex coordinates of ``P`` triangles.
-
-    Returns
-    -------
-    ndarray of shape (P,)
-        The radii :math:`r_T`, rounded up by a relative ``1e-13``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> float(enclosing_radius(np.array([[0.0, 2.0, 0.0]]), np.array([[0.0, 0.0, 2.0]]))[0])
-    1.4142135623732364
-    """
-    px = np.asarray(px, dtype=np.float64)
-    py = np.asarray(py, dtype=np.float64)
-    ex = np.roll(px, -1, axis=1) - px
-    ey = np.roll(py, -1, axis=1) - py
-    l2 = np.sort(ex * ex + ey * ey, axis=1)  # squared edge lengths, ascending
-    area2 = np.abs(ex[:, 0] * ey[:, 1] - ey[:, 0] * ex[:, 1])  # twice the area
-    obtuse = l2[:, 2] >= l2[:, 0] + l2[:, 1]
-    half_longest = 0.5 * np.sqrt(l2[:, 2])
-    safe = np.where(obtuse | (area2 == 0.0), 1.0, area2)
-    circum = np.sqrt(l2[:, 0] * l2[:, 1] * l2[:, 2]) / (2.0 * safe)
-    return np.where(obtuse, half_longest, circum) * (1.0 + _SLACK)
 
 
 # --------------------------------------------------------------------------- the obstacle

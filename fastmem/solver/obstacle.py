@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -51,19 +52,19 @@ __all__ = ["ObstacleLevel", "coarse_problem", "newton_min_obstacle", "solve_obst
 logger = logging.getLogger(__name__)
 
 
+@dataclass
 class ObstacleLevel:
     """What one mesh of nested iteration produced."""
 
-    def __init__(self, problem, u, lam, estimate, steps, inner, converged, seconds, rows):
-        self.problem = problem
-        self.u = u
-        self.lam = lam
-        self.estimate = estimate
-        self.steps = steps
-        self.inner = inner
-        self.converged = converged
-        self.seconds = seconds
-        self.rows = rows
+    problem: Obstacle
+    u: np.ndarray
+    lam: np.ndarray
+    estimate: object
+    steps: int
+    inner: int
+    converged: bool
+    seconds: float
+    rows: dict
 
 
 # ----------------------------------------------------------------- coarse problems
