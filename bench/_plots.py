@@ -11,6 +11,8 @@ on the Agg canvas (no pyplot, no window, no global backend change).
 
 import sys
 
+import numpy as np
+
 MISSING = "matplotlib not installed: no figure (pip install 'fastmem[bench]')"
 
 _COLORS = {
@@ -399,6 +401,43 @@ def plot_adaptivity(payload, path):
     return _save(fig, path)
 
 
+def plot_twophase(payload, path):
+    """Profiles (S_g, P, chi) at the kept times and the cumulated iterations per strategy."""
+    rows = payload["rows"]
+    profiles = payload.get("profiles", [])
+    fig, axes = _new(ncols=4, size=(4.4, 4.0))
+    for prof in profiles:
+        label = f"t = {prof['t_years']:.3g} years"
+        axes[0].plot(prof["x"], prof["s_gas"], lw=1.2, label=label)
+        axes[1].plot(prof["x"], np.asarray(prof["p"]) / 1e6, lw=1.2, label=label)
+        axes[2].plot(prof["x"], np.asarray(prof["chi"]) * 1e4, lw=1.2, label=label)
+    for ax, ylabel in zip(
+        axes[:3],
+        ("gas saturation $S_g$", "liquid pressure P (MPa)", r"dissolved $\chi$ ($10^{-4}$)"),
+        strict=True,
+    ):
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    if profiles:
+        axes[0].legend(fontsize=8)
+    colors = {"exact": "tab:red", "inexact": "tab:orange", "adaptive": "tab:blue"}
+    styles = {"ilu": "-", "cpr": "--", "direct": ":"}
+    ax = axes[3]
+    for r in rows:
+        steps = np.arange(1, len(r["cumulative_linear"]) + 1)
+        name = f"{r['strategy']}/{r['linear_solver']}"
+        style, color = styles[r["linear_solver"]], colors[r["strategy"]]
+        ax.semilogy(steps, r["cumulative_linear"], style, color=color, lw=1.8, label=name)
+        ax.semilogy(steps, r["cumulative_newton"], style, color=color, lw=0.8, alpha=0.6)
+    ax.set_xlabel("time step")
+    ax.set_ylabel("cumulated iterations (thick: linear, thin: Newton-min)")
+    ax.legend(fontsize=7)
+    ax.grid(alpha=0.3, which="both")
+    _title(fig, payload, "Liquid-gas hydrogen column (MoMaS viscosities)")
+    return _save(fig, path)
+
+
 _PLOTTERS = {
     "assembly": plot_assembly,
     "poisson_unit": plot_poisson_unit,
@@ -409,6 +448,7 @@ _PLOTTERS = {
     "scaling": plot_scaling,
     "threads": plot_threads,
     "adaptivity": plot_adaptivity,
+    "twophase": plot_twophase,
 }
 
 

@@ -51,6 +51,7 @@ BENCHMARKS = (
     "sweep",
     "obstacle",
     "peers",
+    "twophase",
 )
 
 

@@ -60,6 +60,7 @@ from .mesh.mesh import Mesh  # noqa: E402
 from .pipeline import solve  # noqa: E402
 from .problems.manufactured import Manufactured  # noqa: E402
 from .sweeps.study import load_sweep, sweep  # noqa: E402
+from . import twophase  # noqa: E402
 
 __version__ = _package_version("0+unknown")
 
@@ -80,5 +81,6 @@ __all__ = [
     "set_threads",
     "solve",
     "sweep",
+    "twophase",
     "warm_up",
 ]

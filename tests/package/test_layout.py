@@ -34,7 +34,7 @@ LAYERS = (
     ("solver", ("fastmem.solver",)),
     ("adapt", ("fastmem.adapt",)),
     ("pipeline", ("fastmem.pipeline",)),
-    ("problems", ("fastmem.problems",)),
+    ("problems", ("fastmem.problems", "fastmem.twophase")),
     ("sweeps", ("fastmem.sweeps",)),
     ("cli", ("fastmem.cli",)),
     ("root", ("fastmem", "fastmem.__main__")),

@@ -1,0 +1,203 @@
+"""The liquid–gas hydrogen benchmark (issue 34; docs/twophase.md §benchmark).
+
+Sections (``--only`` picks some; the others are kept from the earlier JSON):
+
+* ``viscosities``: the 1D column (200 m, ``--cells`` cells, 100 steps of 5000
+  years) with both viscosity sets, exact strategy: the step where gas first
+  appears, and at 1.05e5 and 3.5e5 years the gas saturation, pressure and
+  dissolved fraction at x = 0 and the front (the farthest gas cell), beside
+  the values docs/twophase.md reads off the paper's figures.
+* ``strategies``: MoMaS viscosities, ``exact`` / ``inexact`` / ``adaptive``
+  with GMRES-ILU and GMRES-CPR (and ``exact`` with SuperLU): cumulated
+  Newton-min steps and linear iterations, wall time of the whole run, the
+  largest hydrogen mass-balance defect, the largest profile difference to the
+  exact strategy (scaled unknowns) against eta_disc.
+* ``variant``: injection stopped at 5e5 years (after ``--steps`` steps), run to
+  twice that (adaptive,
+  ILU): when the gas phase vanishes, the Newton-min steps around it, the
+  largest balance defect.
+
+Times are wall seconds of one run on this machine (no JIT is involved:
+the model is NumPy/SciPy), each run started after one untimed 3-step run;
+nothing here is asserted.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from bench._common import finish, keep_sections, parse, progress, sectioned_parser
+from fastmem.twophase import YEAR, benchmark, simulate
+
+SECTIONS = ("viscosities", "strategies", "variant")
+STEP = 5000 * YEAR
+#: Values docs/twophase.md reads off the reference paper's figures (approximate).
+PAPER = {
+    1.05e5: {"s_gas0": 0.011, "p0": 1.165e6, "chi0": 1.04e-4, "front": (95.0, 100.0)},
+    3.5e5: {"s_gas0": 0.017, "front": (160.0, 160.0)},
+}
+
+
+def _profile_row(run, years):
+    i = run.at(years)
+    return {
+        "t_years": run.times[i] / YEAR,
+        "s_gas0": run.s_gas0[i],
+        "p0": run.p0[i],
+        "chi0": run.chi0[i],
+        "front_m": run.front[i],
+        "gas_cells": run.gas_cells[i],
+    }
+
+
+def run_viscosities(cells, steps):
+    out = []
+    for visc in ("momas", "paper"):
+        t0 = time.perf_counter()
+        run = simulate(benchmark(visc, cells), t_end=steps * STEP, estimate=False)
+        row = {
+            "viscosity": visc,
+            "cells": cells,
+            "steps": steps,
+            "first_gas_step": run.first_gas_step,
+            "seconds": time.perf_counter() - t0,
+            **run.totals(),
+        }
+        for years in PAPER:
+            if run.times[-1] >= years * YEAR * (1 - 1e-9):
+                row[f"at_{years:.3g}"] = _profile_row(run, years)
+        progress(f"viscosities {visc}: {row}")
+        out.append(row)
+    return out
+
+
+def run_strategies(cells, steps):
+    cases = [
+        ("exact", "direct"),
+        ("exact", "ilu"),
+        ("inexact", "ilu"),
+        ("adaptive", "ilu"),
+        ("exact", "cpr"),
+        ("adaptive", "cpr"),
+    ]
+    simulate(benchmark("momas", cells), t_end=3 * STEP)  # untimed: imports, caches
+    rows, finals = [], {}
+    for strategy, solver in cases:
+        prob = benchmark("momas", cells)
+        t0 = time.perf_counter()
+        run = simulate(prob, t_end=steps * STEP, strategy=strategy, linear_solver=solver)
+        seconds = time.perf_counter() - t0
+        finals[strategy, solver] = (prob, run)
+        eta = np.array(run.eta)
+        rows.append(
+            {
+                "strategy": strategy,
+                "linear_solver": solver,
+                "cells": cells,
+                "steps": len(run.times),
+                "retries": len(run.retries),
+                "seconds": seconds,
+                **run.totals(),
+                "balance_max_kg": float(np.abs(run.balance).max()),
+                "injected_kg": run.injected[-1],
+                "eta_disc_max": float(eta[:, 0].max()),
+                "eta_lin_max": float(eta[:, 1].max()),
+                "eta_alg_max": float(eta[:, 2].max()),
+                "cumulative_newton": np.cumsum(run.newton).tolist(),
+                "cumulative_linear": np.cumsum(run.linear).tolist(),
+            }
+        )
+        progress(f"strategies {strategy}/{solver}: {run.totals()} in {seconds:.2f} s")
+    prob, ref = finals["exact", "direct"]
+    units = prob.units()
+    for row in rows:
+        run = finals[row["strategy"], row["linear_solver"]][1]
+        row["max_scaled_difference_to_exact"] = float(np.abs((run.final - ref.final) / units).max())
+    exact = next(r for r in rows if r["strategy"] == "exact" and r["linear_solver"] == "ilu")
+    adaptive = next(r for r in rows if r["strategy"] == "adaptive" and r["linear_solver"] == "ilu")
+    summary = {
+        "newton_ratio_exact_over_adaptive": exact["newton"] / adaptive["newton"],
+        "linear_ratio_exact_over_adaptive": exact["linear"] / adaptive["linear"],
+        "paper": {
+            "exact": {"newton": 550, "linear": 6000},
+            "adaptive": {"newton": 113, "linear": 427},
+        },
+    }
+    kept = simulate(
+        benchmark("momas", cells),
+        t_end=steps * STEP,
+        keep=[1.05e5 * YEAR, 3.5e5 * YEAR, steps * STEP],
+    )
+    profiles = [
+        {
+            "t_years": t / YEAR,
+            "x": kept.problem.grid.centres[:, 0].tolist(),
+            "s_gas": (1 - s[:, 0]).tolist(),
+            "p": s[:, 1].tolist(),
+            "chi": s[:, 2].tolist(),
+        }
+        for t, s in zip(kept.kept_times, kept.states, strict=True)
+    ]
+    return rows, summary, profiles
+
+
+def run_variant(cells, steps):
+    stop = steps * STEP / YEAR  # 5e5 years for the 100 steps of the benchmark
+    prob = benchmark("momas", cells, stop_injection=stop)
+    t0 = time.perf_counter()
+    run = simulate(prob, t_end=2 * steps * STEP, strategy="adaptive")
+    seconds = time.perf_counter() - t0
+    g = np.array(run.gas_cells)
+    gone = [i for i in range(1, len(g)) if g[i] == 0 and g[i - 1] > 0]
+    vanish = run.times[gone[0]] / YEAR if gone else math.nan
+    around = slice(max(gone[0] - 3, 0), gone[0] + 3) if gone else slice(0, 0)
+    row = {
+        "cells": cells,
+        "stop_injection_years": stop,
+        "t_end_years": run.times[-1] / YEAR,
+        "vanishes_at_years": vanish,
+        "gas_cells_at_stop": int(g[run.at(stop)]),
+        "newton_around_vanishing": run.newton[around],
+        "times_around_vanishing": [t / YEAR for t in run.times[around]],
+        "gas_cells_around_vanishing": g[around].tolist(),
+        "retries": len(run.retries),
+        "balance_max_kg": float(np.abs(run.balance).max()),
+        "seconds": seconds,
+        **run.totals(),
+        "gas_cells": g.tolist(),
+        "times_years": (np.array(run.times) / YEAR).tolist(),
+    }
+    progress(f"variant: gas vanishes at {vanish} years, {run.totals()}")
+    return row
+
+
+def main(argv=None):
+    p = sectioned_parser(__doc__, SECTIONS, repeat=1)
+    p.add_argument("--cells", type=int, default=1000)
+    p.add_argument("--steps", type=int, default=100)
+    args = parse(p, argv)
+    only = {args.only} if args.only else set(SECTIONS)
+    quick = args.quick
+    cells = 100 if quick else args.cells
+    steps = 12 if quick else args.steps
+    payload = {"parameters": vars(args) | {"results": None, "cells": cells, "steps": steps}}
+    if "viscosities" in only:
+        payload["viscosities"] = run_viscosities(cells, steps)
+        payload["paper_figures"] = {f"{k:.3g}": v for k, v in PAPER.items()}
+    if "strategies" in only:
+        rows, summary, profiles = run_strategies(cells, steps)
+        payload["rows"] = rows
+        payload["summary"] = summary
+        payload["profiles"] = profiles
+    if "variant" in only:
+        payload["variant"] = run_variant(cells, steps)
+    payload = keep_sections("twophase", args.only, quick, payload)
+    finish("twophase", payload, quick)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,278 @@
+"""Time stepping and the Couplex-Gas / MoMaS hydrogen benchmark.
+
+:func:`benchmark` builds the column of docs/twophase.md (200 m,
+1000 cells, hydrogen injected into the first cell, Dirichlet data at the
+right end) with either viscosity set; :func:`simulate` runs backward Euler
+with Newton-min per step (:func:`fastmem.twophase.newton.newton_min`) and
+records, per accepted step, the iterations, the estimators, the key values of
+the profiles and the hydrogen mass balance.
+
+A step is retried with half the length, and the run says so on its logger,
+when Newton-min fails or when more than ``max_front_cells`` cells change
+phase in it; the steps grow back by doubling after a success.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConvergenceError, ParameterError
+from .estimators import Estimator
+from .model import YEAR, Grid, Physics, Problem
+from .newton import newton_min
+
+__all__ = ["INJECTION_PER_YEAR", "VISCOSITIES", "Run", "benchmark", "simulate"]
+
+logger = logging.getLogger(__name__)
+
+#: The two viscosity sets of docs/twophase.md, ``(mu_l, mu_g)`` in Pa s: as printed in
+#: the reference paper, and as specified by MoMaS (and used by the other codes).
+VISCOSITIES = {"paper": (1e-9, 9e-9), "momas": (1e-3, 9e-6)}
+
+#: The benchmark's hydrogen injection, kg m^-2 per year.
+INJECTION_PER_YEAR = 5.57e-6
+
+
+def benchmark(viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=None) -> Problem:
+    """Build the hydrogen-injection column of docs/twophase.md.
+
+    Parameters
+    ----------
+    viscosity : {"momas", "paper"}
+    n_cells : int
+    stop_injection : float, optional
+        Years after which the injection stops (the MoMaS variant: 5e5).
+    """
+    if viscosity not in VISCOSITIES:
+        raise ParameterError(
+            f"viscosity must be one of {', '.join(VISCOSITIES)}, got {viscosity!r}"
+        )
+    mu_l, mu_g = VISCOSITIES[viscosity]
+    grid = Grid.column(200.0, n_cells)
+    hydrogen = np.zeros(grid.n)
+    hydrogen[0] = INJECTION_PER_YEAR / YEAR
+    return Problem(
+        grid,
+        Physics(mu_l=mu_l, mu_g=mu_g),
+        boundary=(1.0, 1e6, 0.0),
+        initial=(1.0, 1e6, 0.0),
+        hydrogen=hydrogen,
+        stop_injection=None if stop_injection is None else stop_injection * YEAR,
+    )
+
+
+@dataclass
+class Run:
+    """The record of a simulation: one entry per accepted time step (SI units)."""
+
+    problem: Problem
+    strategy: str = "exact"
+    linear_solver: str = "ilu"
+    times: list = field(default_factory=list)
+    dts: list = field(default_factory=list)
+    newton: list = field(default_factory=list)
+    linear: list = field(default_factory=list)
+    converged: list = field(default_factory=list)
+    gas_cells: list = field(default_factory=list)
+    front: list = field(default_factory=list)  # largest distance of a gas cell (nan: none)
+    s_gas0: list = field(default_factory=list)
+    p0: list = field(default_factory=list)
+    chi0: list = field(default_factory=list)
+    eta: list = field(default_factory=list)  # (disc, lin, alg) per step
+    in_place: list = field(default_factory=list)
+    injected: list = field(default_factory=list)
+    outflow: list = field(default_factory=list)
+    kept_times: list = field(default_factory=list)
+    states: list = field(default_factory=list)
+    retries: list = field(default_factory=list)  # (time, dt, reason)
+    residuals: list = field(default_factory=list)  # Newton-min residual history per step
+    final: np.ndarray | None = None
+    seconds: float = 0.0
+
+    @property
+    def balance(self) -> np.ndarray:
+        """``in place + outflow - injected`` per step (kg): round-off at convergence."""
+        return np.array(self.in_place) + np.array(self.outflow) - np.array(self.injected)
+
+    @property
+    def first_gas_step(self) -> int | None:
+        """The first accepted step (1-based) that ends with gas in some cell."""
+        for k, g in enumerate(self.gas_cells):
+            if g > 0:
+                return k + 1
+        return None
+
+    def totals(self) -> dict:
+        """Cumulated Newton-min steps and linear iterations."""
+        return {"newton": int(np.sum(self.newton)), "linear": int(np.sum(self.linear))}
+
+    def at(self, years: float) -> int:
+        """Index of the accepted step ending nearest to ``years``."""
+        return int(np.argmin(np.abs(np.array(self.times) / YEAR - years)))
+
+
+def simulate(
+    problem: Problem,
+    dt: float = 5000 * YEAR,
+    t_end: float = 5e5 * YEAR,
+    *,
+    strategy: str = "exact",
+    linear_solver: str = "ilu",
+    gamma_alg: float = 1e-3,
+    gamma_lin: float = 1e-3,
+    nu: int = 5,
+    keep=(),
+    max_newton: int = 40,
+    max_front_cells: int | None = None,
+    min_dt: float | None = None,
+    estimate: bool = True,
+    extrapolate: bool = True,
+    progress=None,
+) -> Run:
+    """Run backward Euler from the problem's initial state to ``t_end``.
+
+    Parameters
+    ----------
+    problem : Problem
+    dt, t_end : float
+        Time step and final time, seconds (``dt`` is the largest step).
+    strategy : {"exact", "inexact", "adaptive"}
+    linear_solver : {"ilu", "cpr", "direct"}
+    gamma_alg, gamma_lin, nu : float, float, int
+        Adaptive stopping parameters (docs/twophase.md §5).
+    keep : sequence of float
+        Times (s) whose profiles are kept (the step ending nearest to each).
+    max_front_cells : int, optional
+        Retry a step with half its length when more cells change phase in it.
+    min_dt : float, optional
+        Smallest step (default ``dt / 1024``); below it ConvergenceError.
+    estimate : bool
+        Evaluate the estimators at the end of every step (``adaptive`` always does).
+    extrapolate : bool
+        Start Newton-min from the linear extrapolation of the last two states
+        (projected on the admissible box) instead of the last state.
+    progress : callable, optional
+        Called with a dict after every accepted step.
+    """
+    for name, value in (("dt", dt), ("t_end", t_end)):
+        if isinstance(value, bool) or not (
+            isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+        ):
+            raise ParameterError(f"{name} must be a positive time in seconds, got {value!r}")
+    if isinstance(nu, bool) or not (isinstance(nu, int) and nu >= 1):
+        raise ParameterError(f"nu must be an integer >= 1, got {nu!r}")
+    for name, value in (("gamma_alg", gamma_alg), ("gamma_lin", gamma_lin)):
+        if not (isinstance(value, (int, float)) and 0 < value < 1):
+            raise ParameterError(f"{name} must be in (0, 1), got {value!r}")
+    min_dt = dt / 1024 if min_dt is None else min_dt
+    estimator = Estimator(problem) if (estimate or strategy == "adaptive") else None
+    x = problem.initial.copy()
+    run = Run(problem, strategy=strategy, linear_solver=linear_solver)
+    t = 0.0
+    injected = 0.0
+    outflow = 0.0
+    keep = sorted(float(v) for v in keep)
+    flux_old = None
+    if estimator is not None:
+        fi, fb = problem.fluxes(x)
+        flux_old = (fi / estimator.scale, fb / estimator.scale)
+    t0 = time.perf_counter()
+    step = dt
+    x_prev = None  # the state one step back, for the extrapolated first guess
+    while t < t_end * (1 - 1e-12):
+        step = min(step, t_end - t)
+        while True:
+            guess = None
+            if extrapolate and x_prev is not None:
+                guess = problem.admissible(x + (step / run.dts[-1]) * (x - x_prev))
+            new, stats = newton_min(
+                problem,
+                x,
+                step,
+                t + step,
+                strategy=strategy,
+                linear_solver=linear_solver,
+                estimator=estimator,
+                flux_old=flux_old,
+                gamma_alg=gamma_alg,
+                gamma_lin=gamma_lin,
+                nu=nu,
+                max_newton=max_newton,
+                x0=guess,
+            )
+            reason = None
+            if not stats.converged:
+                reason = f"Newton-min did not converge in {max_newton} steps"
+            elif max_front_cells is not None:
+                changed = int(np.count_nonzero(problem.gas(new) != problem.gas(x)))
+                if changed > max_front_cells:
+                    reason = f"{changed} cells changed phase (max_front_cells={max_front_cells})"
+            if reason is None:
+                break
+            run.retries.append((t, step, reason))
+            logger.warning(
+                "t = %.6g years, dt = %.4g years: %s; retrying with dt = %.4g years",
+                t / YEAR,
+                step / YEAR,
+                reason,
+                step / 2 / YEAR,
+            )
+            step *= 0.5
+            if step < min_dt:
+                raise ConvergenceError(
+                    f"the time step fell below min_dt = {min_dt / YEAR:.4g} years at t = "
+                    f"{t / YEAR:.6g} years: {reason}. Lower min_dt or dt, or use "
+                    "linear_solver='direct'"
+                )
+        qw, qh = problem.sources(t + step)
+        fw_out, fh_out = problem.outflow(new)
+        outflow += fh_out * step
+        injected += float(np.sum(qh)) * step
+        x_prev, x = x, new
+        t += step
+        gas = problem.gas(x)
+        run.times.append(t)
+        run.dts.append(step)
+        run.newton.append(stats.newton)
+        run.linear.append(stats.linear)
+        run.converged.append(stats.converged)
+        run.residuals.append(stats.residuals)
+        run.gas_cells.append(int(gas.sum()))
+        dist = np.linalg.norm(problem.grid.centres, axis=1)
+        run.front.append(float(dist[gas].max()) if gas.any() else math.nan)
+        run.s_gas0.append(float(1.0 - x[0, 0]))
+        run.p0.append(float(x[0, 1]))
+        run.chi0.append(float(x[0, 2]))
+        run.in_place.append(problem.hydrogen_in_place(x))
+        run.injected.append(injected)
+        run.outflow.append(outflow)
+        if stats.estimate is not None:
+            e = stats.estimate
+            run.eta.append((e.disc, e.lin, e.alg))
+            fi, fb = problem.fluxes(x)
+            flux_old = (fi / estimator.scale, fb / estimator.scale)
+        if keep and any(abs(t - k) <= 0.5 * step for k in keep):
+            run.states.append(x.copy())
+            run.kept_times.append(t)
+        if progress is not None:
+            row = {
+                "step": len(run.times),
+                "t_years": t / YEAR,
+                "dt_years": step / YEAR,
+                "newton": stats.newton,
+                "linear": stats.linear,
+                "gas_cells": int(gas.sum()),
+                "front": run.front[-1],
+            }
+            if stats.estimate is not None:
+                row.update(eta_disc=e.disc, eta_lin=e.lin, eta_alg=e.alg)
+            progress(row)
+        step = min(dt, 2 * step)
+    run.final = x
+    run.seconds = time.perf_counter() - t0
+    return run

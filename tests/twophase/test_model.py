@@ -1,0 +1,170 @@
+"""The liquid–gas model: laws, Jacobian, Newton-min, mass balance, complementarity, bad input."""
+
+import numpy as np
+import pytest
+
+import fastmem as fm
+from fastmem.errors import ParameterError
+from fastmem.twophase import (
+    YEAR,
+    Estimator,
+    Grid,
+    Physics,
+    Problem,
+    benchmark,
+    newton_min,
+    simulate,
+)
+from fastmem.twophase.laws import CHORD
+
+
+def small(n=60, **kw):
+    """The benchmark column with fewer cells (same physics, 200 m)."""
+    return benchmark("momas", n_cells=n, **kw)
+
+
+@pytest.fixture(scope="module")
+def gas_state():
+    """A small column after 6 steps of 5000 years: gas in the first cells."""
+    prob = small()
+    run = simulate(prob, t_end=6 * 5000 * YEAR, linear_solver="direct", estimate=False)
+    assert run.gas_cells[-1] > 0
+    return prob, run.final
+
+
+def test_laws_van_genuchten_values():
+    laws = Physics().laws()
+    s = np.array([0.5, 0.8, 0.99])
+    se = (s - 0.4) / 0.6
+    m = 1 - 1 / 1.49
+    pc = 2e6 * (se ** (-1 / m) - 1) ** (1 / 1.49)
+    krl = np.sqrt(se) * (1 - (1 - se ** (1 / m)) ** m) ** 2
+    krg = np.sqrt(1 - se) * (1 - se ** (1 / m)) ** (2 * m)
+    assert np.allclose(laws.capillary(s), pc, rtol=1e-13)
+    assert np.allclose(laws.k_liquid(s), krl, rtol=1e-13)
+    assert np.allclose(laws.k_gas(s), krg, rtol=1e-13)
+    # the chord on the last CHORD of S_e: continuous, zero capillary pressure at S = 1
+    top = 0.4 + 0.6 * (1 - CHORD)
+    assert laws.capillary(np.array([1.0]))[0] == 0.0
+    assert laws.k_liquid(np.array([1.0]))[0] == pytest.approx(1.0)
+    below, above = laws.capillary(np.array([top - 1e-12, top + 1e-12]))
+    assert above == pytest.approx(below, rel=1e-6)
+
+
+def test_jacobian_matches_finite_differences(gas_state):
+    """The complex-step Jacobian against central differences, column by column."""
+    prob, x = gas_state
+    dt, t = 5000 * YEAR, 7 * 5000 * YEAR
+    x_old = x.copy()
+    x = x.copy()
+    x[:, 1] *= 1.001  # off the solution, so every term is active
+    gas = prob.gas(x)
+    jac = prob.jacobian(x, gas, dt).toarray()
+    units = prob.units()
+    rng = np.random.default_rng(1)
+    for col in rng.choice(3 * prob.grid.n, 25, replace=False):
+        i, k = divmod(int(col), 3)
+        if k == 0 and x[i, 0] >= 1.0 - 1e-6:
+            continue  # S = 1: the one-sided derivative (the model is not defined above 1)
+        h = 1e-6 * units[k]
+        xp, xm = x.copy(), x.copy()
+        xp[i, k] += h
+        xm[i, k] -= h
+        fd = (prob.residual(xp, x_old, dt, t, gas) - prob.residual(xm, x_old, dt, t, gas)) / (2 * h)
+        scale = np.abs(jac[:, col]).max() + 1e-300
+        assert np.abs(fd.ravel() - jac[:, col]).max() <= 1e-5 * scale
+
+
+def test_newton_min_converges_quadratically(gas_state):
+    """The last Newton-min residuals fall like r_{k+1} ~ r_k^2 (direct linear solves)."""
+    prob, x = gas_state
+    dt = 5000 * YEAR
+    _, stats = newton_min(prob, x, dt, 7 * dt, linear_solver="direct", tol=1e-12)
+    assert stats.converged
+    r = np.array(stats.residuals)
+    r = r[(r > 1e-11) & (r < 1e-1)]
+    assert r.size >= 2, stats.residuals
+    orders = np.log(r[1:]) / np.log(r[:-1])
+    assert orders.max() >= 1.8, (stats.residuals, orders)
+
+
+def test_complementarity_and_mass_balance_every_step():
+    prob = small()
+    run = simulate(prob, t_end=10 * 5000 * YEAR, linear_solver="direct")
+    x = run.final
+    one, two = prob.branches(x)
+    assert np.abs(np.minimum(one, two)).max() <= 1e-12
+    assert one.min() >= -1e-15
+    assert two.min() >= -1e-12 * prob.physics.henry_mass * 1e6
+    gas = prob.gas(x)
+    assert gas.any()
+    assert (~gas).any()
+    assert np.all(x[gas, 0] < 1)
+    assert np.all(x[~gas, 0] == 1.0)
+    injected = np.array(run.injected)
+    assert np.abs(run.balance).max() <= 1e-12 * injected.max()
+    assert injected[-1] == pytest.approx(10 * 5000 * 5.57e-6)
+
+
+def test_linear_solvers_and_strategies_agree():
+    prob = small()
+    runs = {
+        (s, ls): simulate(prob, t_end=6 * 5000 * YEAR, strategy=s, linear_solver=ls)
+        for s, ls in (("exact", "direct"), ("exact", "ilu"), ("exact", "cpr"), ("inexact", "ilu"))
+    }
+    ref = runs["exact", "direct"].final
+    units = prob.units()
+    for key, run in runs.items():
+        assert np.abs((run.final - ref) / units).max() <= 1e-8, key
+    adaptive = simulate(prob, t_end=6 * 5000 * YEAR, strategy="adaptive")
+    # adaptive stops early: its profiles differ from exact by much less than eta_disc's size
+    diff = np.abs((adaptive.final - ref) / units).max()
+    assert diff <= 1e-4
+    assert adaptive.totals()["linear"] <= runs["exact", "ilu"].totals()["linear"]
+
+
+def test_gas_appears_in_the_third_step_of_the_benchmark():
+    prob = benchmark("momas")
+    run = simulate(prob, t_end=3 * 5000 * YEAR, linear_solver="direct", estimate=False)
+    assert run.first_gas_step == 3
+    gas = prob.gas(run.final)
+    assert gas[0]
+    assert prob.grid.centres[gas, 0].max() < 5.0
+
+
+def test_gas_disappears_after_injection_stops():
+    """The MoMaS variant on a coarse column, shortened: injection until 1e5 years."""
+    prob = benchmark("momas", n_cells=50, stop_injection=1e5)
+    run = simulate(prob, t_end=3e5 * YEAR, linear_solver="direct", estimate=False)
+    g = np.array(run.gas_cells)
+    peak = int(np.argmax(g))
+    assert g[peak] > 0
+    assert g[-1] == 0
+    assert np.abs(run.balance).max() <= 1e-12 * max(run.injected)
+
+
+def test_bad_input_is_refused_with_the_field_named():
+    grid = Grid.column(10.0, 5)
+    with pytest.raises(ParameterError, match=r"S outside \[S_lr, 1\].*cell 0"):
+        Problem(grid, initial=(0.2, 1e6, 0.0))
+    with pytest.raises(ParameterError, match="nonpositive pressure.*cell 0"):
+        Problem(grid, initial=(1.0, -5.0, 0.0))
+    with pytest.raises(ParameterError, match="negative dissolved"):
+        Problem(grid, boundary=(1.0, 1e6, -1e-3))
+    with pytest.raises(ParameterError, match="dt must be a positive"):
+        simulate(Problem(grid), dt=0.0)
+    with pytest.raises(ParameterError, match="Physics.porosity"):
+        Physics(porosity=-0.1)
+    with pytest.raises(ParameterError, match="Physics.n must exceed 1"):
+        Physics(n=0.9)
+    with pytest.raises(ParameterError, match="strategy must be one of"):
+        simulate(Problem(grid), strategy="fast")
+    with pytest.raises(ParameterError, match="viscosity must be one of"):
+        benchmark("water")
+    with pytest.raises(ParameterError, match="need a Dirichlet face"):
+        Estimator(Problem(Grid.column(10.0, 5, right_dirichlet=False)))
+
+
+def test_public_face():
+    assert fm.twophase.Problem is Problem
+    assert set(fm.twophase.STRATEGIES) == {"exact", "inexact", "adaptive"}
