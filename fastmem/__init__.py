@@ -60,9 +60,17 @@ from .mesh.mesh import Mesh  # noqa: E402
 from .pipeline import solve  # noqa: E402
 from .problems.manufactured import Manufactured  # noqa: E402
 from .sweeps.study import load_sweep, sweep  # noqa: E402
-from . import twophase  # noqa: E402
 
 __version__ = _package_version("0+unknown")
+
+
+def __getattr__(name):
+    """``fm.twophase`` on first use (it imports pyamg: 30-40 ms of ``import fastmem``)."""
+    if name == "twophase":
+        import importlib  # lazy: fastmem.twophase loads pyamg, 30-40 ms measured
+
+        return importlib.import_module(f"{__name__}.twophase")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "Estimate",
