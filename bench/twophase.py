@@ -12,6 +12,14 @@ Sections (``--only`` picks some; the others are kept from the earlier JSON):
   Newton-min steps and linear iterations, wall time of the whole run, the
   largest hydrogen mass-balance defect, the largest profile difference to the
   exact strategy (scaled unknowns) against eta_disc.
+* ``section``: the 2D section (200 m x 20 m, hydrogen through 2 m of the left
+  edge, vertex-centred on ``nx x ny`` rectangles), ``--section-steps`` steps of
+  5000 years with GMRES-CPR, exact strategy: seconds per step (the first
+  step left out: it compiles the block-ILU kernel), Newton-min steps and
+  linear iterations per Newton step, cells holding gas; the exponent of the
+  time per step in the number of cells.  At the last state of the largest
+  mesh, one Newton-min system solved by GMRES-ILU and by GMRES-CPR to 1e-8
+  (iterations, seconds; ILU capped at 1000 iterations).
 * ``variant``: injection stopped at 5e5 years (after ``--steps`` steps), run to
   twice that (adaptive,
   ILU): when the gas phase vanishes, the Newton-min steps around it, the
@@ -28,11 +36,14 @@ import math
 import time
 
 import numpy as np
+import scipy.sparse as sp
 
 from bench._common import finish, keep_sections, parse, progress, sectioned_parser
-from fastmem.twophase import YEAR, benchmark, simulate
+from fastmem.twophase import YEAR, benchmark, section, simulate
+from fastmem.twophase.linear import gmres, preconditioner
+from fastmem.twophase.newton import _ORDER
 
-SECTIONS = ("viscosities", "strategies", "variant")
+SECTIONS = ("viscosities", "strategies", "variant", "section")
 STEP = 5000 * YEAR
 #: Values docs/twophase.md reads off the reference paper's figures (approximate).
 PAPER = {
@@ -174,10 +185,72 @@ def run_variant(cells, steps):
     return row
 
 
+def run_section(sizes, steps):
+    rows = []
+    for nx, ny in sizes:
+        prob = section(nx, ny)
+        per_step = []
+        t_last = [time.perf_counter()]
+
+        def tick(row, per_step=per_step, t_last=t_last):
+            now = time.perf_counter()
+            per_step.append(now - t_last[0])
+            t_last[0] = now
+
+        run = simulate(prob, t_end=steps * STEP, linear_solver="cpr", progress=tick)
+        rows.append(
+            {
+                "nx": nx,
+                "ny": ny,
+                "cells": prob.grid.n,
+                "unknowns": 3 * prob.grid.n,
+                "steps": len(run.times),
+                "seconds_per_step": float(np.mean(per_step[1:])),
+                "seconds_first_step": per_step[0],
+                **run.totals(),
+                "linear_per_newton": run.totals()["linear"] / run.totals()["newton"],
+                "gas_cells_end": run.gas_cells[-1],
+                "balance_max_kg": float(np.abs(run.balance).max()),
+                "injected_kg": run.injected[-1],
+            }
+        )
+        progress(f"section {nx}x{ny}: {rows[-1]}")
+        last = (prob, run)
+    cells = np.array([r["cells"] for r in rows], float)
+    secs = np.array([r["seconds_per_step"] for r in rows])
+    exponent = float(np.polyfit(np.log(cells), np.log(secs), 1)[0]) if len(rows) > 1 else None
+    prob, run = last
+    dt = STEP
+    x = run.final
+    gas = prob.gas(x)
+    r = prob.residual(x, x, dt, run.times[-1] + dt, gas)
+    jac = prob.jacobian(x, gas, dt)
+    scales = prob.row_scales(dt, gas).ravel()
+    perm = (3 * np.arange(prob.grid.n)[:, None] + _ORDER).ravel()
+    a = (sp.diags(1 / scales) @ jac @ sp.diags(np.tile(prob.units(), prob.grid.n))).tocsr()
+    a = a[perm].tocsr()
+    b = -(r.ravel() / scales)[perm]
+    solves = {}
+    for kind in ("ilu", "cpr"):
+        t0 = time.perf_counter()
+        m = preconditioner(kind, a, prob.grid.n, scales[perm])
+        setup = time.perf_counter() - t0
+        _, stats = gmres(a, b, m, rtol=1e-8, maxiter=1000, restart=100)
+        solves[kind] = {
+            "iterations": stats.iterations,
+            "residual": stats.residual,
+            "setup_s": setup,
+            "seconds": time.perf_counter() - t0,
+        }
+        progress(f"section solve {kind}: {solves[kind]}")
+    return {"rows": rows, "time_exponent": exponent, "one_solve": solves, "cells": prob.grid.n}
+
+
 def main(argv=None):
     p = sectioned_parser(__doc__, SECTIONS, repeat=1)
     p.add_argument("--cells", type=int, default=1000)
     p.add_argument("--steps", type=int, default=100)
+    p.add_argument("--section-steps", type=int, default=6)
     args = parse(p, argv)
     only = {args.only} if args.only else set(SECTIONS)
     quick = args.quick
@@ -194,6 +267,9 @@ def main(argv=None):
         payload["profiles"] = profiles
     if "variant" in only:
         payload["variant"] = run_variant(cells, steps)
+    if "section" in only:
+        sizes = [(50, 5), (100, 10)] if quick else [(250, 25), (500, 50), (1000, 100)]
+        payload["section"] = run_section(sizes, 3 if quick else args.section_steps)
     payload = keep_sections("twophase", args.only, quick, payload)
     finish("twophase", payload, quick)
     return 0

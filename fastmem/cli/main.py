@@ -20,6 +20,7 @@ import sys
 import time
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from ..about import package_version
@@ -38,6 +39,7 @@ from ..problems.obstacles import REFERENCE_OBSTACLES, exact_error, reference_obs
 from ..solver.nested import interpolation_matrix
 from .plot import add_parser as _add_plot
 from .sweep import add_sweep_parser, extend_plot_parser
+from .twophase import add_twophase_parser, export_twophase, print_info
 from .warmup import KernelMeter, WarmUp, kernels_cached, start_compile_helper, warm_up
 
 __all__ = ["main"]
@@ -294,6 +296,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     extend_plot_parser(_add_plot(sub))  # plot: an archive, or a sweep study folder
     add_sweep_parser(sub)
+    add_twophase_parser(sub)
     return p
 
 
@@ -746,6 +749,8 @@ def _run_obstacle(args, problem, method, adapt, adaptive, outputs, t_mesh, t_ker
 
 def _cmd_info(args) -> int:
 
+    if _is_twophase(args.file):
+        return print_info(args.file, args.json)
     summary = info(args.file)
     if args.json:
         _out(json.dumps(summary, indent=2, default=str))
@@ -807,12 +812,24 @@ def _cmd_info(args) -> int:
 
 def _cmd_export(args) -> int:
 
+    if _is_twophase(args.file):
+        return export_twophase(args.file, args.out)
     out, existed = check_output(args.out, EXPORT_SUFFIXES)  # before reading the archive
     export(load(args.file), out)
     extra = [str(c) for c in companion_files(out)]
     note = f" (heavy data in {', '.join(extra)}; keep the files together)" if extra else ""
     _out(f"wrote {out}{note}" + (" (replaced the existing file)" if existed else ""))
     return 0
+
+
+def _is_twophase(path) -> bool:
+    """Tell whether ``path`` is a two-phase archive (its format attribute; never raises)."""
+    try:
+        with h5py.File(path, "r") as f:
+            value = f.attrs.get("format", "")
+    except (OSError, ValueError):
+        return False
+    return (value.decode() if isinstance(value, bytes) else str(value)) == "fastmem-twophase"
 
 
 def main(argv=None) -> int:

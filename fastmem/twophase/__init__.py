@@ -13,9 +13,9 @@ condition, solved by Newton-min (docs/twophase.md).
 """
 
 from .estimators import Estimate, Estimator
-from .model import YEAR, Grid, Physics, Problem
+from .model import YEAR, Grid, Physics, Problem, mesh_grid
 from .newton import STRATEGIES, newton_min
-from .run import VISCOSITIES, Run, benchmark, simulate
+from .run import VISCOSITIES, Run, benchmark, section, simulate
 
 __all__ = [
     "STRATEGIES",
@@ -28,6 +28,8 @@ __all__ = [
     "Problem",
     "Run",
     "benchmark",
+    "mesh_grid",
     "newton_min",
+    "section",
     "simulate",
 ]

@@ -43,7 +43,12 @@ from scipy.sparse.linalg import splu
 
 from ..errors import ParameterError
 
-__all__ = ["Estimate", "Estimator"]
+__all__ = ["WEIGHTS", "Estimate", "Estimator"]
+
+#: How the components are weighed: ``volume`` (pore volume per second: water over
+#: ``rho_w``, hydrogen over ``H P_ref``) or ``mass`` (kg/s as they come, as the
+#: reference paper does: water then outweighs hydrogen by about 5e4).
+WEIGHTS = ("volume", "mass")
 
 
 @dataclass
@@ -78,7 +83,10 @@ class Estimate:
 class Estimator:
     """Evaluates :class:`Estimate` for a :class:`~fastmem.twophase.model.Problem`."""
 
-    def __init__(self, problem):
+    def __init__(self, problem, weights: str = "volume"):
+        if weights not in WEIGHTS:
+            raise ParameterError(f"weights must be one of {', '.join(WEIGHTS)}, got {weights!r}")
+        self.weights = weights
         g = problem.grid
         if g.boundary_cells.size == 0:
             raise ParameterError(
@@ -102,8 +110,13 @@ class Estimator:
         ph = problem.physics
         p_ref, _ = problem.references()
         #: divisors taking water, hydrogen (kg/s) and the min rows to pore volume per second
-        self.scale = np.array([ph.rho_w, ph.henry_mass * p_ref])
         self.henry_ref = ph.henry_mass * p_ref
+        if weights == "volume":
+            self.scale = np.array([ph.rho_w, self.henry_ref])
+            self.min_scale = np.array([1.0, self.henry_ref])  # (1 - S rows, Henry rows)
+        else:  # "mass": kg/s as they come (the reference paper's measure)
+            self.scale = np.array([1.0, 1.0])
+            self.min_scale = np.array([1.0 / ph.rho_w, 1.0])
         h = g.volume ** (1.0 / g.dim)
         self._cell_weight = h**2 / 12.0 / g.volume
 
@@ -138,7 +151,7 @@ class Estimator:
     def min_rows_as_rate(self, rows, gas, dt):
         """Complementarity row values (N,) as pore volume per second."""
         pore = self.problem.grid.volume * self.problem.physics.porosity / dt
-        return pore * np.where(gas, rows / self.henry_ref, rows)
+        return pore * np.where(gas, rows / self.min_scale[1], rows / self.min_scale[0])
 
     # ------------------------------------------------------------------ the estimate
     def disc_terms(self, x, x_old, flux_old, dt):
@@ -149,6 +162,20 @@ class Estimator:
         fb = fb / self.scale
         div = prob.divergence(fi, fb)
         space = float(np.sum(self._cell_weight[:, None] * div**2))
+        # flux mismatch: the two-point flux against the flux each side's own coefficients
+        # give (upwinded mobilities and face averages against cell values)
+        left, right, inner = prob.cell_side_fluxes(x)
+        g = prob.grid
+        space += (
+            float(
+                np.sum(
+                    ((left / self.scale - fi) ** 2 + (right / self.scale - fi) ** 2)
+                    / g.geometry[:, None]
+                )
+                + np.sum((inner / self.scale - fb) ** 2 / g.boundary_geometry[:, None])
+            )
+            / 3.0
+        )
         time = 0.0
         if flux_old is not None:
             time = self.face_norm2(fi - flux_old[0], fb - flux_old[1]) / 3.0
@@ -158,7 +185,7 @@ class Estimator:
         one, two = prob.branches(mid)
         changed = prob.gas(x) != prob.gas(x_old)
         prod = np.where(
-            changed, np.sqrt(np.maximum(one, 0) * np.maximum(two, 0) / self.henry_ref), 0
+            changed, np.sqrt(np.maximum(one, 0) * np.maximum(two, 0) / self.min_scale[1]), 0
         )
         pore = prob.grid.volume * prob.physics.porosity / dt
         transition = self.dual_norm2(pore * prod)

@@ -49,9 +49,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ParameterError
+from ..mesh.mesh import Mesh
 from .laws import VanGenuchten
 
-__all__ = ["R_GAS", "YEAR", "Grid", "Physics", "Problem"]
+__all__ = ["R_GAS", "YEAR", "Grid", "Physics", "Problem", "mesh_grid"]
 
 #: Seconds per year (365.25 days).
 YEAR = 365.25 * 86400.0
@@ -206,6 +207,79 @@ class Grid:
         return grid
 
 
+def mesh_grid(mesh: Mesh, dirichlet):
+    """Build the vertex-centred grid of a triangular mesh and its Dirichlet faces.
+
+    The cells are the dual cells of the free vertices (volume: the lumped P1
+    mass ``|omega_a|/3``).  Two vertices joined by an edge share a face whose
+    ``area/distance`` is minus the P1 stiffness entry of the edge, the
+    cotangent weight; it is the two-point flux of the dual cells on a
+    Delaunay mesh (docs/twophase.md §2).  Edges with a zero weight (the
+    hypotenuses of right triangles) carry no flux and are dropped; a negative
+    weight (an obtuse pair: not Delaunay) is refused.
+
+    Parameters
+    ----------
+    mesh : fastmem.Mesh
+    dirichlet : (N,) bool array
+        The vertices whose states are given; edges from a free vertex to one
+        of them become the Dirichlet faces.
+
+    Returns
+    -------
+    grid : Grid
+    free : (n,) int array
+        The mesh vertex of every cell.
+    boundary_vertices : (B,) int array
+        The Dirichlet vertex of every boundary face.
+    """
+    if not isinstance(mesh, Mesh):
+        raise ParameterError(f"mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
+    fixed = np.asarray(dirichlet, dtype=bool)
+    if fixed.shape != (mesh.n_vertices,):
+        raise ParameterError(
+            f"dirichlet must be a bool mask of the {mesh.n_vertices} vertices, got shape "
+            f"{fixed.shape}"
+        )
+    tri = mesh.triangles
+    grads = mesh.gradients
+    areas = mesh.areas
+    pairs = ((0, 1), (1, 2), (2, 0))
+    i = np.concatenate([tri[:, a] for a, _ in pairs])
+    j = np.concatenate([tri[:, b] for _, b in pairs])
+    w = np.concatenate([-areas * np.einsum("td,td->t", grads[:, a], grads[:, b]) for a, b in pairs])
+    lo, hi = np.minimum(i, j), np.maximum(i, j)
+    key = lo.astype(np.int64) * mesh.n_vertices + hi
+    uniq, inverse = np.unique(key, return_inverse=True)
+    weight = np.bincount(inverse, w, uniq.size)
+    lo, hi = uniq // mesh.n_vertices, uniq % mesh.n_vertices
+    scale = np.abs(weight).max()
+    if (weight < -1e-12 * scale).any():
+        e = int(np.argmin(weight))
+        raise ParameterError(
+            f"the mesh is not Delaunay: edge ({lo[e]}, {hi[e]}) has the negative two-point "
+            f"weight {weight[e]:.3g}; the vertex-centred scheme needs a Delaunay mesh"
+        )
+    keep = weight > 1e-12 * scale
+    lo, hi, weight = lo[keep], hi[keep], weight[keep]
+    free = np.flatnonzero(~fixed)
+    index = np.full(mesh.n_vertices, -1, dtype=np.int64)
+    index[free] = np.arange(free.size)
+    inner = ~fixed[lo] & ~fixed[hi]
+    edge_b = fixed[lo] ^ fixed[hi]
+    cell_b = np.where(fixed[lo[edge_b]], hi[edge_b], lo[edge_b])
+    vert_b = np.where(fixed[lo[edge_b]], lo[edge_b], hi[edge_b])
+    grid = Grid(
+        mesh.lumped_mass[free],
+        mesh.vertices[free],
+        np.stack([index[lo[inner]], index[hi[inner]]], axis=1),
+        weight[inner],
+        index[cell_b],
+        weight[edge_b],
+    )
+    return grid, free, vert_b
+
+
 class Problem:
     """The liquid–gas problem on a grid: physics, sources, Dirichlet and initial states.
 
@@ -221,6 +295,9 @@ class Problem:
         Injection rates per cell, kg/s (per unit cross-section or depth).
     stop_injection : float, optional
         Time (s) after which nothing more is injected.
+    monitor : int, optional
+        The cell whose values a run records per step (default: the largest
+        hydrogen source).
     """
 
     def __init__(
@@ -233,6 +310,7 @@ class Problem:
         hydrogen=0.0,
         water=0.0,
         stop_injection: float | None = None,
+        monitor: int | None = None,
     ):
         self.grid = grid
         self.physics = Physics() if physics is None else physics
@@ -257,6 +335,16 @@ class Problem:
                 f"stop_injection must be a positive time in s, got {stop_injection!r}"
             )
         self.stop_injection = stop_injection
+        #: the cell whose values a run records per step (default: the largest hydrogen source)
+        self.monitor = int(np.argmax(self.hydrogen)) if monitor is None else int(monitor)
+        #: the scene's name and sizes (archives); the mesh of a vertex-centred grid, the
+        #: mesh vertex of every cell and of every Dirichlet face (exports)
+        self.scene: dict = {}
+        self.mesh = None
+        self.cell_vertex = None
+        self.boundary_vertex = None
+        if not 0 <= self.monitor < n:
+            raise ParameterError(f"monitor must be a cell index in 0..{n - 1}, got {monitor!r}")
         self._build_pattern()
 
     # ------------------------------------------------------------------ checks
@@ -304,8 +392,15 @@ class Problem:
         out[:, 1] = pore * self.mass_h(x[:, 0], x[:, 1], x[:, 2])
         return out
 
-    def face_fluxes(self, xl, xr, geometry):
-        """``(F_w, F_h)`` from states ``xl`` to ``xr`` (F, 3) across faces of ``geometry``."""
+    def face_fluxes(self, xl, xr, geometry, coefficients=None):
+        """``(F_w, F_h)`` from states ``xl`` to ``xr`` (F, 3) across faces of ``geometry``.
+
+        With ``coefficients`` (F, 3), every coefficient of the fluxes (the
+        mobilities, ``S``, ``chi`` and ``P_g`` in the face terms) is taken from
+        that state instead of upwinding and face averages, the differences
+        still from ``xl`` and ``xr``: the flux a cell's own values give
+        (the estimators' flux mismatch).
+        """
         ph, laws = self.physics, self.laws
         sl, pl, cl = xl[:, 0], xl[:, 1], xl[:, 2]
         sr, pr_, cr = xr[:, 0], xr[:, 1], xr[:, 2]
@@ -313,12 +408,18 @@ class Problem:
         pgr = pr_ + laws.capillary(sr)
         dp = pr_ - pl
         dpg = pgr - pgl
-        kl = np.where(np.real(dp) <= 0.0, laws.k_liquid(sl), laws.k_liquid(sr)) / ph.mu_l
-        kg = np.where(np.real(dpg) <= 0.0, laws.k_gas(sl), laws.k_gas(sr)) / ph.mu_g
-        ql = -ph.permeability * geometry * kl * dp
-        qg = -ph.permeability * geometry * kg * dpg
-        s_f = 0.5 * (sl + sr)
-        c_f = 0.5 * (cl + cr)
+        if coefficients is None:
+            kl = np.where(np.real(dp) <= 0.0, laws.k_liquid(sl), laws.k_liquid(sr))
+            kg = np.where(np.real(dpg) <= 0.0, laws.k_gas(sl), laws.k_gas(sr))
+            s_f = 0.5 * (sl + sr)
+            c_f = 0.5 * (cl + cr)
+            pg_f = 0.5 * (pgl + pgr)
+        else:
+            s_f, c_f = coefficients[:, 0], coefficients[:, 2]
+            kl, kg = laws.k_liquid(s_f), laws.k_gas(s_f)
+            pg_f = coefficients[:, 1] + laws.capillary(s_f)
+        ql = -ph.permeability * geometry * kl / ph.mu_l * dp
+        qg = -ph.permeability * geometry * kg / ph.mu_g * dpg
         j = (
             -ph.porosity
             * ph.molar_h
@@ -329,8 +430,20 @@ class Problem:
             * (cr - cl)
         )
         fw = ph.rho_w * ql - j
-        fh = ph.beta_l * c_f * ql + ph.beta_g * 0.5 * (pgl + pgr) * qg + j
+        fh = ph.beta_l * c_f * ql + ph.beta_g * pg_f * qg + j
         return fw, fh
+
+    def cell_side_fluxes(self, x):
+        """Interior face fluxes with each side's own coefficients: ``(F_l, F_r)`` (F, 2) each."""
+        g = self.grid
+        xl, xr = x[g.faces[:, 0]], x[g.faces[:, 1]]
+        left = np.stack(self.face_fluxes(xl, xr, g.geometry, xl), axis=1)
+        right = np.stack(self.face_fluxes(xl, xr, g.geometry, xr), axis=1)
+        xb = x[g.boundary_cells]
+        inner = np.stack(
+            self.face_fluxes(xb, self.boundary.astype(xb.dtype), g.boundary_geometry, xb), axis=1
+        )
+        return left, right, inner
 
     def fluxes(self, x):
         """Interior and boundary face fluxes: ``(F (F, 2), F_b (B, 2))``, kg/s, l → r / out."""

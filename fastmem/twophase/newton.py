@@ -90,6 +90,7 @@ def newton_min(
     stats = StepStats()
     gas_prev = None
     norm_prev = None
+    stages = None  # CPR's AMG hierarchies, built at the first Newton step
     forcing = 0.1
     for k in range(max_newton):
         gas = problem.gas(x)
@@ -134,7 +135,10 @@ def newton_min(
             y = direct(a, b)
             its = 1
         else:
-            apply_m = preconditioner(linear_solver, a, problem.grid.n)
+            apply_m = preconditioner(
+                linear_solver, a, problem.grid.n, scales.ravel()[perm], stages=stages
+            )
+            stages = getattr(apply_m, "stages", None)
             check = None
             rtol = 1e-10 if strategy != "inexact" else forcing
             if strategy == "adaptive":

@@ -22,11 +22,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ConvergenceError, ParameterError
+from ..mesh.mesh import Mesh
 from .estimators import Estimator
-from .model import YEAR, Grid, Physics, Problem
+from .model import YEAR, Grid, Physics, Problem, mesh_grid
 from .newton import newton_min
 
-__all__ = ["INJECTION_PER_YEAR", "VISCOSITIES", "Run", "benchmark", "simulate"]
+__all__ = ["INJECTION_PER_YEAR", "VISCOSITIES", "Run", "benchmark", "section", "simulate"]
 
 logger = logging.getLogger(__name__)
 
@@ -36,6 +37,20 @@ VISCOSITIES = {"paper": (1e-9, 9e-9), "momas": (1e-3, 9e-6)}
 
 #: The benchmark's hydrogen injection, kg m^-2 per year.
 INJECTION_PER_YEAR = 5.57e-6
+
+
+def _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor=None) -> Problem:
+    """Build the benchmark's rock, fluids and states on ``grid`` with the given injection."""
+    mu_l, mu_g = VISCOSITIES[viscosity]
+    return Problem(
+        grid,
+        Physics(mu_l=mu_l, mu_g=mu_g),
+        boundary=(1.0, 1e6, 0.0),
+        initial=(1.0, 1e6, 0.0),
+        hydrogen=hydrogen,
+        stop_injection=None if stop_injection is None else stop_injection * YEAR,
+        monitor=monitor,
+    )
 
 
 def benchmark(viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=None) -> Problem:
@@ -52,18 +67,82 @@ def benchmark(viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=N
         raise ParameterError(
             f"viscosity must be one of {', '.join(VISCOSITIES)}, got {viscosity!r}"
         )
-    mu_l, mu_g = VISCOSITIES[viscosity]
     grid = Grid.column(200.0, n_cells)
     hydrogen = np.zeros(grid.n)
     hydrogen[0] = INJECTION_PER_YEAR / YEAR
-    return Problem(
-        grid,
-        Physics(mu_l=mu_l, mu_g=mu_g),
-        boundary=(1.0, 1e6, 0.0),
-        initial=(1.0, 1e6, 0.0),
-        hydrogen=hydrogen,
-        stop_injection=None if stop_injection is None else stop_injection * YEAR,
-    )
+    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection)
+    prob.scene = {
+        "name": "benchmark",
+        "viscosity": viscosity,
+        "cells": n_cells,
+        "length": 200.0,
+        "injection_per_year": INJECTION_PER_YEAR,
+        "stop_injection_years": stop_injection,
+    }
+    return prob
+
+
+def section(
+    nx: int = 1000,
+    ny: int = 100,
+    viscosity: str = "momas",
+    *,
+    length: float = 200.0,
+    height: float = 20.0,
+    stretch=(9.0, 11.0),
+    injection: float | None = None,
+    stop_injection=None,
+) -> Problem:
+    """Build the 2D section: ``length x height`` m, hydrogen injected along ``stretch`` of x = 0.
+
+    The benchmark's rock and fluids, vertex-centred on the structured mesh of
+    ``nx x ny`` rectangles (``(nx + 1) (ny + 1)`` vertices, the right edge
+    Dirichlet: ``nx (ny + 1)`` cells), no flow on the other edges.
+    ``injection`` is the rate on the stretch, kg m^-2 per year; by default the
+    column's hydrogen per metre of height, all of it through the stretch
+    (``5.57e-6 * height / (y1 - y0)``: with the benchmark's rate spread over
+    the whole edge the dissolved hydrogen spreads in 2D and gas would not
+    appear for about a million years).  It is shared among the left-edge
+    vertices by the length of their dual boundary within the stretch (per
+    metre of depth).  The monitor cell is the left-edge vertex nearest the
+    stretch's middle.
+    """
+    if viscosity not in VISCOSITIES:
+        raise ParameterError(
+            f"viscosity must be one of {', '.join(VISCOSITIES)}, got {viscosity!r}"
+        )
+    y0, y1 = (float(v) for v in stretch)
+    if not 0 <= y0 < y1 <= height:
+        raise ParameterError(f"stretch must satisfy 0 <= y0 < y1 <= height, got {stretch!r}")
+    mesh = Mesh.rectangle(nx, ny, (0.0, length, 0.0, height))
+    x, y = mesh.vertices[:, 0], mesh.vertices[:, 1]
+    grid, free, boundary_vertex = mesh_grid(mesh, np.isclose(x, length))
+    dy = height / ny
+    lo = np.clip(y - dy / 2, 0.0, height)
+    hi = np.clip(y + dy / 2, 0.0, height)
+    share = np.clip(np.minimum(hi, y1) - np.maximum(lo, y0), 0.0, None) * np.isclose(x, 0.0)
+    rate = INJECTION_PER_YEAR * height / (y1 - y0) if injection is None else float(injection)
+    if not (math.isfinite(rate) and rate >= 0):
+        raise ParameterError(
+            f"injection must be a rate >= 0 in kg m^-2 per year, got {injection!r}"
+        )
+    hydrogen = share[free] * rate / YEAR
+    left = np.flatnonzero(np.isclose(grid.centres[:, 0], 0.0))
+    monitor = int(left[np.argmin(np.abs(grid.centres[left, 1] - 0.5 * (y0 + y1)))])
+    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor)
+    prob.scene = {
+        "name": "section",
+        "viscosity": viscosity,
+        "nx": nx,
+        "ny": ny,
+        "length": length,
+        "height": height,
+        "stretch": [y0, y1],
+        "injection_per_year": rate,
+        "stop_injection_years": stop_injection,
+    }
+    prob.mesh, prob.cell_vertex, prob.boundary_vertex = mesh, free, boundary_vertex
+    return prob
 
 
 @dataclass
@@ -79,8 +158,8 @@ class Run:
     linear: list = field(default_factory=list)
     converged: list = field(default_factory=list)
     gas_cells: list = field(default_factory=list)
-    front: list = field(default_factory=list)  # largest distance of a gas cell (nan: none)
-    s_gas0: list = field(default_factory=list)
+    front: list = field(default_factory=list)  # largest x of a gas cell (nan: none)
+    s_gas0: list = field(default_factory=list)  # at the problem's monitor cell
     p0: list = field(default_factory=list)
     chi0: list = field(default_factory=list)
     eta: list = field(default_factory=list)  # (disc, lin, alg) per step
@@ -125,13 +204,14 @@ def simulate(
     linear_solver: str = "ilu",
     gamma_alg: float = 1e-3,
     gamma_lin: float = 1e-3,
-    nu: int = 5,
+    nu: int = 1,
     keep=(),
     max_newton: int = 40,
     max_front_cells: int | None = None,
     min_dt: float | None = None,
     estimate: bool = True,
     extrapolate: bool = True,
+    weights: str = "volume",
     progress=None,
 ) -> Run:
     """Run backward Euler from the problem's initial state to ``t_end``.
@@ -145,8 +225,9 @@ def simulate(
     linear_solver : {"ilu", "cpr", "direct"}
     gamma_alg, gamma_lin, nu : float, float, int
         Adaptive stopping parameters (docs/twophase.md §5).
-    keep : sequence of float
-        Times (s) whose profiles are kept (the step ending nearest to each).
+    keep : sequence of float, int or "all"
+        Which profiles are kept: the steps ending nearest to the given times
+        (s), every step (``"all"``), or every k-th step and the last (an int k).
     max_front_cells : int, optional
         Retry a step with half its length when more cells change phase in it.
     min_dt : float, optional
@@ -156,6 +237,8 @@ def simulate(
     extrapolate : bool
         Start Newton-min from the linear extrapolation of the last two states
         (projected on the admissible box) instead of the last state.
+    weights : {"volume", "mass"}
+        How the estimators weigh the components (:data:`~fastmem.twophase.estimators.WEIGHTS`).
     progress : callable, optional
         Called with a dict after every accepted step.
     """
@@ -170,13 +253,23 @@ def simulate(
         if not (isinstance(value, (int, float)) and 0 < value < 1):
             raise ParameterError(f"{name} must be in (0, 1), got {value!r}")
     min_dt = dt / 1024 if min_dt is None else min_dt
-    estimator = Estimator(problem) if (estimate or strategy == "adaptive") else None
+    estimator = Estimator(problem, weights) if (estimate or strategy == "adaptive") else None
     x = problem.initial.copy()
     run = Run(problem, strategy=strategy, linear_solver=linear_solver)
     t = 0.0
     injected = 0.0
     outflow = 0.0
-    keep = sorted(float(v) for v in keep)
+    every = None
+    if isinstance(keep, str):
+        if keep != "all":
+            raise ParameterError(f"keep must be 'all', an int or a sequence of times, got {keep!r}")
+        every, keep = 1, []
+    elif isinstance(keep, (int, np.integer)) and not isinstance(keep, bool):
+        if keep < 1:
+            raise ParameterError(f"keep must be >= 1 when an int (every k-th step), got {keep!r}")
+        every, keep = int(keep), []
+    else:
+        keep = sorted(float(v) for v in keep)
     flux_old = None
     if estimator is not None:
         fi, fb = problem.fluxes(x)
@@ -243,11 +336,11 @@ def simulate(
         run.converged.append(stats.converged)
         run.residuals.append(stats.residuals)
         run.gas_cells.append(int(gas.sum()))
-        dist = np.linalg.norm(problem.grid.centres, axis=1)
-        run.front.append(float(dist[gas].max()) if gas.any() else math.nan)
-        run.s_gas0.append(float(1.0 - x[0, 0]))
-        run.p0.append(float(x[0, 1]))
-        run.chi0.append(float(x[0, 2]))
+        run.front.append(float(problem.grid.centres[gas, 0].max()) if gas.any() else math.nan)
+        m = problem.monitor
+        run.s_gas0.append(float(1.0 - x[m, 0]))
+        run.p0.append(float(x[m, 1]))
+        run.chi0.append(float(x[m, 2]))
         run.in_place.append(problem.hydrogen_in_place(x))
         run.injected.append(injected)
         run.outflow.append(outflow)
@@ -256,7 +349,9 @@ def simulate(
             run.eta.append((e.disc, e.lin, e.alg))
             fi, fb = problem.fluxes(x)
             flux_old = (fi / estimator.scale, fb / estimator.scale)
-        if keep and any(abs(t - k) <= 0.5 * step for k in keep):
+        last = t >= t_end * (1 - 1e-12)
+        wanted = every is not None and (len(run.times) % every == 0 or last)
+        if wanted or (keep and any(abs(t - k) <= 0.5 * step for k in keep)):
             run.states.append(x.copy())
             run.kept_times.append(t)
         if progress is not None:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from fastmem.twophase import YEAR, Estimator, benchmark, simulate
+from fastmem.twophase import YEAR, Estimator, benchmark, section, simulate
 from fastmem.twophase.linear import gmres, preconditioner
 from fastmem.twophase.newton import _ORDER
 
@@ -54,21 +54,24 @@ def _linear_system(prob, x, x_old, dt, t):
     return gas, r, jac, a, -(r.ravel() * rows)[perm], cols
 
 
-def test_eta_alg_vanishes_as_gmres_converges(state):
-    prob, x_old = state
-    dt, t = 5000 * YEAR, 6 * 5000 * YEAR
+def test_eta_alg_vanishes_as_gmres_converges():
+    """On the 2D section (in 1D the block ILU is exact and GMRES stops after one step)."""
+    prob = section(120, 12)
+    dt = 5000 * YEAR
+    x_old = simulate(prob, t_end=4 * dt, linear_solver="direct", estimate=False).final
+    t = 5 * dt
     gas, r, jac, a, b, cols = _linear_system(prob, x_old, x_old, dt, t)
     est = Estimator(prob)
-    m = preconditioner("ilu", a, prob.grid.n)
+    m = preconditioner("cpr", a, prob.grid.n)
     etas = []
-    for its in (1, 2, 3, 6):
-        y, _ = gmres(a, b, m, rtol=1e-14, maxiter=its)
+    for its in (1, 4, 12, 30):
+        y, _ = gmres(a, b, m, rtol=1e-14, maxiter=its, restart=100)
         x = prob.admissible(x_old + (y * cols).reshape(-1, 3))
         r_alg = r.ravel() + jac @ (y * cols)
         e, _ = est.estimate(x, x_old, r_alg, gas, dt, t)
         etas.append(e.alg)
-    assert etas[-1] <= 1e-6 * etas[0]
-    assert all(b_ <= a_ * 1.0001 for a_, b_ in zip(etas, etas[1:], strict=False))
+    assert etas[-1] <= 1e-6 * etas[0], etas
+    assert all(b_ <= a_ * 1.0001 for a_, b_ in zip(etas, etas[1:], strict=False)), etas
 
 
 def test_eta_lin_vanishes_as_newton_converges(state):
