@@ -73,6 +73,18 @@ def add_twophase_parser(sub) -> None:
         default=None,
         help="archive to write (default twophase-SCENE.h5)",
     )
+    r.add_argument(
+        "--complementarity",
+        choices=("min", "fb"),
+        default="min",
+        help="Newton-min, or Newton on Fischer-Burmeister",
+    )
+    r.add_argument(
+        "--max-front-cells",
+        type=int,
+        default=None,
+        help="halve a step in which more cells change phase (and say so)",
+    )
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     p = tsub.add_parser("plot", help="draw a two-phase archive (needs matplotlib)")
     p.set_defaults(func=_cmd_plot)
@@ -95,7 +107,7 @@ def _cmd_run(args) -> int:
     from ..twophase.archive import save_run  # lazy: fastmem.twophase loads pyamg, 30-40 ms
 
     _positive("dt-years", args.dt_years)
-    for name in ("cells", "nx", "ny", "steps", "nu", "keep-every"):
+    for name in ("cells", "nx", "ny", "steps", "nu", "keep-every", "max-front-cells"):
         value = getattr(args, name.replace("-", "_"))
         if value is not None and value < 1:
             raise ParameterError(f"--{name} must be a positive integer, got {value!r}")
@@ -108,10 +120,12 @@ def _cmd_run(args) -> int:
     steps = args.steps or default_steps
     dt = args.dt_years * YEAR
     if args.scene == "section":
-        problem = section(args.nx, args.ny, args.viscosity)
+        problem = section(args.nx, args.ny, args.viscosity, complementarity=args.complementarity)
     else:
         stop = steps / 2 * args.dt_years if args.scene == "variant" else None
-        problem = benchmark(args.viscosity, args.cells, stop_injection=stop)
+        problem = benchmark(
+            args.viscosity, args.cells, stop_injection=stop, complementarity=args.complementarity
+        )
     solver = args.linear_solver or ("cpr" if args.scene == "section" else "ilu")
     every = args.keep_every or (5 if args.scene == "section" else 1)
     if not args.quiet:
@@ -147,6 +161,7 @@ def _cmd_run(args) -> int:
         nu=args.nu,
         weights=args.weights,
         keep=every,
+        max_front_cells=args.max_front_cells,
         progress=progress,
     )
     save_run(run, out)

@@ -151,6 +151,8 @@ class Estimator:
     def min_rows_as_rate(self, rows, gas, dt):
         """Complementarity row values (N,) as pore volume per second."""
         pore = self.problem.grid.volume * self.problem.physics.porosity / dt
+        if self.problem.complementarity == "fb":  # dimensionless, like 1 - S
+            return pore * rows / self.min_scale[0]
         return pore * np.where(gas, rows / self.min_scale[1], rows / self.min_scale[0])
 
     # ------------------------------------------------------------------ the estimate
@@ -203,7 +205,7 @@ class Estimator:
         prob = self.problem
         r_alg = np.asarray(r_alg, dtype=float).reshape(-1, 3)
         r_now = prob.residual(x, x_old, dt, t, gas)
-        c_now = np.minimum(*prob.branches(x))
+        c_now = prob.complementarity_residual(x)
         alg_min = self.min_rows_as_rate(r_alg[:, 2], gas, dt)
         lin_min = self.min_rows_as_rate(c_now, gas, dt) - alg_min
         alg2 = self.dual_norm2(np.column_stack([r_alg[:, :2] / self.scale, alg_min]))

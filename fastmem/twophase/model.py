@@ -52,7 +52,10 @@ from ..errors import ParameterError
 from ..mesh.mesh import Mesh
 from .laws import VanGenuchten
 
-__all__ = ["R_GAS", "YEAR", "Grid", "Physics", "Problem", "mesh_grid"]
+__all__ = ["COMPLEMENTARITY", "R_GAS", "YEAR", "Grid", "Physics", "Problem", "mesh_grid"]
+
+#: The complementarity functions: Newton-min, or Newton on Fischer-Burmeister.
+COMPLEMENTARITY = ("min", "fb")
 
 #: Seconds per year (365.25 days).
 YEAR = 365.25 * 86400.0
@@ -298,6 +301,11 @@ class Problem:
     monitor : int, optional
         The cell whose values a run records per step (default: the largest
         hydrogen source).
+    complementarity : {"min", "fb"}
+        The third equation of a cell: ``min{a, b}`` (Newton-min) or the
+        Fischer-Burmeister function ``a + b - sqrt(a^2 + b^2)`` of ``a = 1 - S``
+        and ``b = (H P_g - beta_l chi) / (H P_ref)`` (made dimensionless so
+        that the two arguments weigh alike).
     """
 
     def __init__(
@@ -311,7 +319,15 @@ class Problem:
         water=0.0,
         stop_injection: float | None = None,
         monitor: int | None = None,
+        complementarity: str = "min",
     ):
+        if complementarity not in COMPLEMENTARITY:
+            raise ParameterError(
+                f"complementarity must be one of {', '.join(COMPLEMENTARITY)}, got "
+                f"{complementarity!r}"
+            )
+        #: "min" (Newton-min) or "fb" (Newton on the Fischer-Burmeister function)
+        self.complementarity = complementarity
         self.grid = grid
         self.physics = Physics() if physics is None else physics
         self.laws = self.physics.laws()
@@ -392,25 +408,37 @@ class Problem:
         out[:, 1] = pore * self.mass_h(x[:, 0], x[:, 1], x[:, 2])
         return out
 
-    def face_fluxes(self, xl, xr, geometry, coefficients=None):
+    def face_fluxes(self, xl, xr, geometry, coefficients=None, laws_lr=None):
         """``(F_w, F_h)`` from states ``xl`` to ``xr`` (F, 3) across faces of ``geometry``.
 
         With ``coefficients`` (F, 3), every coefficient of the fluxes (the
         mobilities, ``S``, ``chi`` and ``P_g`` in the face terms) is taken from
         that state instead of upwinding and face averages, the differences
         still from ``xl`` and ``xr``: the flux a cell's own values give
-        (the estimators' flux mismatch).
+        (the estimators' flux mismatch).  ``laws_lr``, the six arrays
+        ``(P_c, k_rl, k_rg)`` of the left and the right states
+        (``pcl, pcr, kll, klr, kgl, kgr``), spare evaluating the laws per face.
         """
         ph, laws = self.physics, self.laws
         sl, pl, cl = xl[:, 0], xl[:, 1], xl[:, 2]
         sr, pr_, cr = xr[:, 0], xr[:, 1], xr[:, 2]
-        pgl = pl + laws.capillary(sl)
-        pgr = pr_ + laws.capillary(sr)
+        if laws_lr is None:
+            laws_lr = (
+                laws.capillary(sl),
+                laws.capillary(sr),
+                laws.k_liquid(sl),
+                laws.k_liquid(sr),
+                laws.k_gas(sl),
+                laws.k_gas(sr),
+            )
+        pcl, pcr, kll, klr, kgl, kgr = laws_lr
+        pgl = pl + pcl
+        pgr = pr_ + pcr
         dp = pr_ - pl
         dpg = pgr - pgl
         if coefficients is None:
-            kl = np.where(np.real(dp) <= 0.0, laws.k_liquid(sl), laws.k_liquid(sr))
-            kg = np.where(np.real(dpg) <= 0.0, laws.k_gas(sl), laws.k_gas(sr))
+            kl = np.where(np.real(dp) <= 0.0, kll, klr)
+            kg = np.where(np.real(dpg) <= 0.0, kgl, kgr)
             s_f = 0.5 * (sl + sr)
             c_f = 0.5 * (cl + cr)
             pg_f = 0.5 * (pgl + pgr)
@@ -445,13 +473,39 @@ class Problem:
         )
         return left, right, inner
 
+    def cell_laws(self, s, derivatives=False):
+        """``(P_c, k_rl, k_rg)`` of the saturations ``s`` (N,), with their S-derivatives.
+
+        Returns three arrays, or with ``derivatives`` three ``(value,
+        derivative)`` pairs (complex step: exact to round-off).
+        """
+        laws = (self.laws.capillary, self.laws.k_liquid, self.laws.k_gas)
+        if not derivatives:
+            return tuple(law(s) for law in laws)
+        z = np.asarray(s, dtype=float) + 1j * _H
+        return tuple((np.real(v), np.imag(v) / _H) for v in (law(z) for law in laws))
+
+    def _boundary_laws(self):
+        if not hasattr(self, "_bl"):
+            self._bl = self.cell_laws(self.boundary[:, 0])
+        return self._bl
+
     def fluxes(self, x):
         """Interior and boundary face fluxes: ``(F (F, 2), F_b (B, 2))``, kg/s, l → r / out."""
         g = self.grid
-        fi = np.stack(self.face_fluxes(x[g.faces[:, 0]], x[g.faces[:, 1]], g.geometry), axis=1)
-        xb = x[g.boundary_cells]
+        left, right, bc = g.faces[:, 0], g.faces[:, 1], g.boundary_cells
+        if np.iscomplexobj(x):
+            lr = blr = None
+        else:
+            pc, kl, kg = self.cell_laws(x[:, 0])
+            lr = (pc[left], pc[right], kl[left], kl[right], kg[left], kg[right])
+            bpc, bkl, bkg = self._boundary_laws()
+            blr = (pc[bc], bpc, kl[bc], bkl, kg[bc], bkg)
+        fi = np.stack(self.face_fluxes(x[left], x[right], g.geometry, laws_lr=lr), axis=1)
+        xb = x[bc]
         fb = np.stack(
-            self.face_fluxes(xb, self.boundary.astype(xb.dtype), g.boundary_geometry), axis=1
+            self.face_fluxes(xb, self.boundary.astype(xb.dtype), g.boundary_geometry, laws_lr=blr),
+            axis=1,
         )
         return fi, fb
 
@@ -498,10 +552,25 @@ class Problem:
         out = np.empty((x.shape[0], 3), dtype=np.result_type(x, float))
         out[:, :2] = self.conservation(x, x_old, dt, t)
         one, two = self.branches(x)
+        if self.complementarity == "fb":
+            out[:, 2] = self.fischer_burmeister(one, two)
+            return out
         if gas is None:
             gas = np.real(two) < np.real(one)
         out[:, 2] = np.where(gas, two, one)
         return out
+
+    def fischer_burmeister(self, one, two):
+        """Return ``a + b - sqrt(a^2 + b^2)`` with ``a = 1 - S``, ``b = two / (H P_ref)``."""
+        b = two / (self.physics.henry_mass * self.references()[0])
+        return one + b - np.sqrt(one * one + b * b)
+
+    def complementarity_residual(self, x):
+        """Return the nonlinear third equation at ``x``: the min or Fischer-Burmeister (N,)."""
+        one, two = self.branches(x)
+        if self.complementarity == "fb":
+            return self.fischer_burmeister(one, two)
+        return np.minimum(one, two)
 
     # ------------------------------------------------------------------ Jacobian
     def _build_pattern(self):
@@ -551,24 +620,43 @@ class Problem:
     def jacobian(self, x, gas, dt):
         """Return the Newton-min Jacobian (3N x 3N CSR), exact to round-off (complex step)."""
         g = self.grid
-        xl, xr = x[g.faces[:, 0]], x[g.faces[:, 1]]
-        geo = g.geometry
-
-        def faces(a, b):
-            return self.face_fluxes(a, b, geo)
-
-        d = self._complex_derivatives(faces, (xl, xr), (0, 1))
-        # (F, 2, 3) blocks: d[which][k][comp]
-        dl = np.stack([np.stack(d[0][k], axis=1) for k in range(3)], axis=2)
-        dr = np.stack([np.stack(d[1][k], axis=1) for k in range(3)], axis=2)
-        xb = x[g.boundary_cells]
-        bvals = self.boundary
-
-        def bfaces(a):
-            return self.face_fluxes(a, bvals.astype(complex), g.boundary_geometry)
-
-        db = self._complex_derivatives(bfaces, (xb,), (0,))
-        dbb = np.stack([np.stack(db[0][k], axis=1) for k in range(3)], axis=2)
+        left, right, bc = g.faces[:, 0], g.faces[:, 1], g.boundary_cells
+        (pc, dpc), (kl, dkl), (kg, dkg) = self.cell_laws(x[:, 0], derivatives=True)
+        bpc, bkl, bkg = self._boundary_laws()
+        # every face flux against each of its inputs by the complex step, the laws
+        # entering through their cell values and derivatives (chain rule)
+        sides = (
+            (x[left], x[right], g.geometry, (left, right)),
+            (x[bc], self.boundary, g.boundary_geometry, (bc, None)),
+        )
+        blocks = []
+        for xa, xb_, geo, (ia, ib) in sides:
+            if ib is None:
+                base = [pc[ia], bpc, kl[ia], bkl, kg[ia], bkg]
+                which_sides = (0,)
+                cells = (ia,)
+            else:
+                base = [pc[ia], pc[ib], kl[ia], kl[ib], kg[ia], kg[ib]]
+                which_sides = (0, 1)
+                cells = (ia, ib)
+            out = []
+            for which in which_sides:
+                cols = []
+                for k in range(3):
+                    z = [np.asarray(xa, dtype=complex), np.asarray(xb_, dtype=complex)]
+                    step = _H * np.maximum(np.abs(z[which][:, k].real), 1.0)
+                    z[which] = z[which].copy()
+                    z[which][:, k] += 1j * step
+                    lw = [np.asarray(v, dtype=complex) for v in base]
+                    if k == 0:
+                        c = cells[which]
+                        for law, deriv in enumerate((dpc, dkl, dkg)):
+                            lw[2 * law + which] = lw[2 * law + which] + 1j * step * deriv[c]
+                    fw, fh = self.face_fluxes(z[0], z[1], geo, laws_lr=lw)
+                    cols.append(np.stack([np.imag(fw) / step, np.imag(fh) / step], axis=1))
+                out.append(np.stack(cols, axis=2))  # (F, 2, 3)
+            blocks.append(out)
+        (dl, dr), (dbb,) = blocks
 
         def store(a):
             st = self.storage(a)
@@ -578,12 +666,22 @@ class Problem:
         dss = np.stack([np.stack(ds[0][k], axis=1) for k in range(3)], axis=2)
         # complementarity rows
         ph = self.physics
-        z = np.asarray(x[:, 0], dtype=complex) + 1j * _H
-        dpc = np.imag(self.laws.capillary(z)) / _H
         crow = np.zeros((g.n, 3))
-        crow[:, 0] = np.where(gas, ph.henry_mass * dpc, -1.0)
-        crow[:, 1] = np.where(gas, ph.henry_mass, 0.0)
-        crow[:, 2] = np.where(gas, -ph.beta_l, 0.0)
+        if self.complementarity == "fb":
+            one, two = self.branches(x)
+            scale = ph.henry_mass * self.references()[0]
+            b = two / scale
+            r = np.hypot(one, b)
+            zero = r == 0.0  # the kink: the generalised derivative (1 - 1/sqrt 2) (1, 1)
+            da = np.where(zero, 1 - 0.5**0.5, 1 - one / np.where(zero, 1.0, r))
+            db = np.where(zero, 1 - 0.5**0.5, 1 - b / np.where(zero, 1.0, r))
+            crow[:, 0] = -da + db * ph.henry_mass * dpc / scale
+            crow[:, 1] = db * ph.henry_mass / scale
+            crow[:, 2] = -db * ph.beta_l / scale
+        else:
+            crow[:, 0] = np.where(gas, ph.henry_mass * dpc, -1.0)
+            crow[:, 1] = np.where(gas, ph.henry_mass, 0.0)
+            crow[:, 2] = np.where(gas, -ph.beta_l, 0.0)
         vals = np.concatenate(
             [
                 dl.ravel(),
@@ -620,7 +718,9 @@ class Problem:
         out = np.empty((self.grid.n, 3))
         out[:, 0] = pore * ph.rho_w
         out[:, 1] = pore * ph.beta_l * chi_ref
-        out[:, 2] = np.where(gas, ph.henry_mass * p_ref, 1.0)
+        out[:, 2] = (
+            1.0 if self.complementarity == "fb" else np.where(gas, ph.henry_mass * p_ref, 1.0)
+        )
         return out
 
     def admissible(self, x):

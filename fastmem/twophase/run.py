@@ -39,7 +39,9 @@ VISCOSITIES = {"paper": (1e-9, 9e-9), "momas": (1e-3, 9e-6)}
 INJECTION_PER_YEAR = 5.57e-6
 
 
-def _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor=None) -> Problem:
+def _hydrogen_problem(
+    grid, viscosity, hydrogen, stop_injection, monitor=None, complementarity="min"
+) -> Problem:
     """Build the benchmark's rock, fluids and states on ``grid`` with the given injection."""
     mu_l, mu_g = VISCOSITIES[viscosity]
     return Problem(
@@ -50,10 +52,13 @@ def _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor=None) -
         hydrogen=hydrogen,
         stop_injection=None if stop_injection is None else stop_injection * YEAR,
         monitor=monitor,
+        complementarity=complementarity,
     )
 
 
-def benchmark(viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=None) -> Problem:
+def benchmark(
+    viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=None, complementarity="min"
+) -> Problem:
     """Build the hydrogen-injection column of docs/twophase.md.
 
     Parameters
@@ -62,6 +67,8 @@ def benchmark(viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=N
     n_cells : int
     stop_injection : float, optional
         Years after which the injection stops (the MoMaS variant: 5e5).
+    complementarity : {"min", "fb"}
+        Newton-min or Newton on Fischer-Burmeister (:class:`Problem`).
     """
     if viscosity not in VISCOSITIES:
         raise ParameterError(
@@ -70,7 +77,7 @@ def benchmark(viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=N
     grid = Grid.column(200.0, n_cells)
     hydrogen = np.zeros(grid.n)
     hydrogen[0] = INJECTION_PER_YEAR / YEAR
-    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection)
+    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, None, complementarity)
     prob.scene = {
         "name": "benchmark",
         "viscosity": viscosity,
@@ -92,6 +99,7 @@ def section(
     stretch=(9.0, 11.0),
     injection: float | None = None,
     stop_injection=None,
+    complementarity: str = "min",
 ) -> Problem:
     """Build the 2D section: ``length x height`` m, hydrogen injected along ``stretch`` of x = 0.
 
@@ -129,7 +137,7 @@ def section(
     hydrogen = share[free] * rate / YEAR
     left = np.flatnonzero(np.isclose(grid.centres[:, 0], 0.0))
     monitor = int(left[np.argmin(np.abs(grid.centres[left, 1] - 0.5 * (y0 + y1)))])
-    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor)
+    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor, complementarity)
     prob.scene = {
         "name": "section",
         "viscosity": viscosity,

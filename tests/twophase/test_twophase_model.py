@@ -168,3 +168,32 @@ def test_bad_input_is_refused_with_the_field_named():
 def test_public_face():
     assert fm.twophase.Problem is Problem
     assert set(fm.twophase.STRATEGIES) == {"exact", "inexact", "adaptive"}
+
+
+def test_fischer_burmeister_reaches_the_newton_min_solution():
+    """Both complementarity functions have the same zeros: the same discrete solution."""
+    runs = {
+        c: simulate(small(complementarity=c), t_end=8 * 5000 * YEAR, linear_solver="direct")
+        for c in ("min", "fb")
+    }
+    prob = small()
+    units = prob.units()
+    assert runs["fb"].gas_cells[-1] == runs["min"].gas_cells[-1] > 0
+    assert np.abs((runs["fb"].final - runs["min"].final) / units).max() <= 1e-8
+    assert np.abs(prob.complementarity_residual(runs["fb"].final)).max() <= 1e-10
+    with pytest.raises(ParameterError, match="complementarity must be one of"):
+        small(complementarity="smooth")
+
+
+def test_a_step_where_too_many_cells_change_phase_is_halved(caplog):
+    prob = small(120)
+    with caplog.at_level("WARNING", logger="fastmem.twophase.run"):
+        run = simulate(
+            prob, t_end=6 * 5000 * YEAR, linear_solver="direct", max_front_cells=2, estimate=False
+        )
+    assert run.retries
+    assert all("changed phase" in reason for _, _, reason in run.retries)
+    assert "retrying with dt" in caplog.text
+    assert min(run.dts) < 5000 * YEAR
+    assert run.times[-1] == pytest.approx(6 * 5000 * YEAR)
+    assert np.abs(run.balance).max() <= 1e-12 * run.injected[-1]
