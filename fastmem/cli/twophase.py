@@ -35,9 +35,15 @@ def add_twophase_parser(sub) -> None:
     tsub.required = True
     r = tsub.add_parser("run", help="run a scene and write its time-series archive")
     r.set_defaults(func=_cmd_run)
-    r.add_argument("scene", choices=SCENES, help="the column, its variant, or the 2D section")
+    r.add_argument(
+        "scene",
+        help="benchmark (the column), variant (injection stops halfway), section (2D), "
+        "or a scene file FILE.toml (docs/twophase.md §7)",
+    )
     r.add_argument("--viscosity", choices=("momas", "paper"), default="momas")
-    r.add_argument("--strategy", choices=("exact", "inexact", "adaptive"), default="adaptive")
+    r.add_argument(
+        "--strategy", choices=("exact", "inexact", "adaptive"), default=None, help="(adaptive)"
+    )
     r.add_argument(
         "--linear-solver",
         choices=("ilu", "cpr", "direct"),
@@ -50,10 +56,12 @@ def add_twophase_parser(sub) -> None:
     r.add_argument(
         "--steps", type=int, default=None, help="time steps (default 100; variant 200; section 20)"
     )
-    r.add_argument("--dt-years", type=float, default=5000.0, help="time step, years")
-    r.add_argument("--gamma-alg", type=float, default=1e-3)
-    r.add_argument("--gamma-lin", type=float, default=1e-3)
-    r.add_argument("--nu", type=int, default=1, help="GMRES iterations between estimator checks")
+    r.add_argument("--dt-years", type=float, default=None, help="time step, years (5000)")
+    r.add_argument("--gamma-alg", type=float, default=None, help="(1e-3)")
+    r.add_argument("--gamma-lin", type=float, default=None, help="(1e-3)")
+    r.add_argument(
+        "--nu", type=int, default=None, help="GMRES iterations between estimator checks (1)"
+    )
     r.add_argument(
         "--weights",
         choices=("volume", "mass"),
@@ -105,35 +113,61 @@ def _positive(name, value):
 def _cmd_run(args) -> int:
     from ..twophase import YEAR, benchmark, section, simulate  # lazy: pyamg, 30-40 ms
     from ..twophase.archive import save_run  # lazy: fastmem.twophase loads pyamg, 30-40 ms
+    from ..twophase.scene import load_scene  # lazy: fastmem.twophase loads pyamg, 30-40 ms
 
     _positive("dt-years", args.dt_years)
     for name in ("cells", "nx", "ny", "steps", "nu", "keep-every", "max-front-cells"):
         value = getattr(args, name.replace("-", "_"))
         if value is not None and value < 1:
             raise ParameterError(f"--{name} must be a positive integer, got {value!r}")
-    out = args.output or Path(f"twophase-{args.scene}.h5")
+    from_file = args.scene.endswith(".toml")
+    if not from_file and args.scene not in SCENES:
+        raise ParameterError(
+            f"scene must be one of {', '.join(SCENES)} or a scene file FILE.toml, got "
+            f"{args.scene!r}"
+        )
+    stem = Path(args.scene).stem if from_file else args.scene
+    out = args.output or Path(f"{stem}.h5" if from_file else f"twophase-{stem}.h5")
     if out.suffix not in (".h5", ".hdf5"):
         raise ParameterError(f"--output must end in .h5 or .hdf5, got {str(out)!r}")
     if not out.resolve().parent.is_dir():
         raise ParameterError(f"--output: the folder {str(out.resolve().parent)!r} does not exist")
-    default_steps = {"benchmark": 100, "variant": 200, "section": 20}[args.scene]
-    steps = args.steps or default_steps
-    dt = args.dt_years * YEAR
-    if args.scene == "section":
-        problem = section(args.nx, args.ny, args.viscosity, complementarity=args.complementarity)
+    options = {"strategy": "adaptive", "gamma_alg": 1e-3, "gamma_lin": 1e-3, "nu": 1}
+    if from_file:
+        problem, found = load_scene(args.scene)  # refuses bad units before any work
+        dt = found.pop("dt")
+        t_end = found.pop("t_end")
+        options.update(found)
+        if args.dt_years is not None:
+            dt = args.dt_years * YEAR
+        steps = args.steps or max(1, round(t_end / dt))
     else:
-        stop = steps / 2 * args.dt_years if args.scene == "variant" else None
-        problem = benchmark(
-            args.viscosity, args.cells, stop_injection=stop, complementarity=args.complementarity
-        )
-    solver = args.linear_solver or ("cpr" if args.scene == "section" else "ilu")
-    every = args.keep_every or (5 if args.scene == "section" else 1)
+        steps = args.steps or {"benchmark": 100, "variant": 200, "section": 20}[args.scene]
+        dt = (args.dt_years or 5000.0) * YEAR
+        if args.scene == "section":
+            problem = section(
+                args.nx, args.ny, args.viscosity, complementarity=args.complementarity
+            )
+        else:
+            stop = steps / 2 * dt / YEAR if args.scene == "variant" else None
+            problem = benchmark(
+                args.viscosity,
+                args.cells,
+                stop_injection=stop,
+                complementarity=args.complementarity,
+            )
+    for name in ("strategy", "gamma_alg", "gamma_lin", "nu"):
+        if getattr(args, name) is not None:
+            options[name] = getattr(args, name)
+    two_d = problem.grid.dim == 2
+    solver = args.linear_solver or options.pop("linear_solver", None) or ("cpr" if two_d else "ilu")
+    options.pop("linear_solver", None)
+    every = args.keep_every or (5 if two_d else 1)
     if not args.quiet:
         _out(
-            f"fastmem twophase: {args.scene}, {problem.grid.n} cells, {steps} steps of "
-            f"{args.dt_years:g} years, strategy {args.strategy}, GMRES-{solver}"
-            if solver != "direct"
-            else f"fastmem twophase: {args.scene}, {problem.grid.n} cells, {steps} steps, direct"
+            f"fastmem twophase: {stem}, {problem.grid.n} cells, {steps} steps of "
+            f"{dt / YEAR:g} years, strategy {options['strategy']}, "
+            + (f"GMRES-{solver}" if solver != "direct" else "SuperLU")
         )
         _out(
             f"{'step':>5} {'t (years)':>10} {'Newton':>6} {'linear':>6} {'gas cells':>9} "
@@ -154,12 +188,9 @@ def _cmd_run(args) -> int:
         problem,
         dt=dt,
         t_end=steps * dt,
-        strategy=args.strategy,
         linear_solver=solver,
-        gamma_alg=args.gamma_alg,
-        gamma_lin=args.gamma_lin,
-        nu=args.nu,
         weights=args.weights,
+        **options,
         keep=every,
         max_front_cells=args.max_front_cells,
         progress=progress,
@@ -170,7 +201,13 @@ def _cmd_run(args) -> int:
         _out(
             f"done in {run.seconds:.2f} s: {tot['newton']} Newton-min steps, {tot['linear']} "
             f"linear iterations, gas first in step {run.first_gas_step}, hydrogen balance "
-            f"{abs(run.balance).max():.1e} kg; wrote {out}"
+            f"{abs(run.balance).max():.1e} kg"
+            + (
+                f" ({abs(run.balance_equilibrated).max():.1e} kg with the equilibrated flux)"
+                if run.balance_equilibrated.size
+                else ""
+            )
+            + f"; wrote {out}"
         )
     return 0
 
@@ -225,7 +262,9 @@ def print_info(path, as_json: bool) -> int:
         f"  gas               appears {appears}, vanishes {vanishes}, "
         f"at most {s['max_gas_cells']} cells"
     )
-    _out(f"  hydrogen balance  {s['balance_max_kg']:.2e} kg (largest over the steps)")
+    eq = s["balance_equilibrated_max_kg"]
+    eq_text = "" if eq is None else f"; {eq:.2e} kg with the equilibrated flux"
+    _out(f"  hydrogen balance  {s['balance_max_kg']:.2e} kg (largest over the steps){eq_text}")
     _out(f"  profiles kept     {s['kept_profiles']}")
     _out(f"  run time          {s['seconds']:.2f} s")
     return 0

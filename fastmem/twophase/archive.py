@@ -12,7 +12,8 @@ file next to the target, renamed on success):
 * ``steps/``: one row per accepted step: ``time`` (s), ``dt``, ``newton``,
   ``linear``, ``gas_cells``, ``front`` (m), ``s_gas``, ``pressure``, ``chi``
   (at the monitor cell), ``eta`` (disc, lin, alg), ``in_place``,
-  ``injected``, ``outflow`` (kg);
+  ``injected``, ``outflow`` and ``outflow_equilibrated`` (kg, cumulated: the
+  two-point and the equilibrated flux through the Dirichlet faces);
 * ``profiles/``: ``time`` (K,), ``state`` (K, N, 3) = (S, P, chi) and ``gas``
   (K, N) for the kept steps.
 """
@@ -48,6 +49,7 @@ _STEP_COLUMNS = (
     ("in_place", "in_place", "kg"),
     ("injected", "injected", "kg"),
     ("outflow", "outflow", "kg"),
+    ("outflow_equilibrated", "outflow_equilibrated", "kg"),
 )
 
 
@@ -165,6 +167,11 @@ def info_run(path) -> dict:
         "max_gas_cells": int(gas.max()) if gas.size else 0,
         "balance_max_kg": float(
             np.abs(st["in_place"] + st["outflow"] - st["injected"]).max() if gas.size else 0.0
+        ),
+        "balance_equilibrated_max_kg": (
+            float(np.abs(st["in_place"] + st["outflow_equilibrated"] - st["injected"]).max())
+            if st["outflow_equilibrated"].size
+            else None
         ),
         "eta_disc_max": float(eta[:, 0].max()) if eta.size else None,
         "kept_profiles": int(d["profiles"]["time"].size),

@@ -63,10 +63,12 @@ def block_ilu(a: sp.csr_matrix):
     indptr = bsr.indptr.astype(np.int64)
     indices = bsr.indices.astype(np.int64)
     blocks = np.ascontiguousarray(bsr.data, dtype=float)
-    try:
-        diag_pos, inv_diag = bilu0_factor(indptr, indices, blocks)
-    except np.linalg.LinAlgError as exc:
-        raise NumericalError(f"block ILU(0) met a singular diagonal block: {exc}") from exc
+    diag_pos, inv_diag, singular = bilu0_factor(indptr, indices, blocks)
+    if singular >= 0:
+        raise NumericalError(
+            f"block ILU(0) met a singular pivot block at cell {singular}: use "
+            "linear_solver='direct'"
+        )
 
     def apply(r):
         return bilu0_solve(indptr, indices, blocks, diag_pos, inv_diag, np.ascontiguousarray(r))

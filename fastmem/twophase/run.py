@@ -39,16 +39,32 @@ VISCOSITIES = {"paper": (1e-9, 9e-9), "momas": (1e-3, 9e-6)}
 INJECTION_PER_YEAR = 5.57e-6
 
 
+_STATE = (1.0, 1e6, 0.0)
+
+
 def _hydrogen_problem(
-    grid, viscosity, hydrogen, stop_injection, monitor=None, complementarity="min"
+    grid,
+    viscosity,
+    hydrogen,
+    stop_injection,
+    monitor=None,
+    complementarity="min",
+    physics=None,
+    boundary=_STATE,
+    initial=_STATE,
 ) -> Problem:
-    """Build the benchmark's rock, fluids and states on ``grid`` with the given injection."""
-    mu_l, mu_g = VISCOSITIES[viscosity]
+    """Build the benchmark's rock, fluids and states on ``grid`` with the given injection.
+
+    ``physics``, when given, replaces the benchmark's (and ``viscosity``).
+    """
+    if physics is None:
+        mu_l, mu_g = VISCOSITIES[viscosity]
+        physics = Physics(mu_l=mu_l, mu_g=mu_g)
     return Problem(
         grid,
-        Physics(mu_l=mu_l, mu_g=mu_g),
-        boundary=(1.0, 1e6, 0.0),
-        initial=(1.0, 1e6, 0.0),
+        physics,
+        boundary=boundary,
+        initial=initial,
         hydrogen=hydrogen,
         stop_injection=None if stop_injection is None else stop_injection * YEAR,
         monitor=monitor,
@@ -57,7 +73,16 @@ def _hydrogen_problem(
 
 
 def benchmark(
-    viscosity: str = "momas", n_cells: int = 1000, *, stop_injection=None, complementarity="min"
+    viscosity: str = "momas",
+    n_cells: int = 1000,
+    *,
+    stop_injection=None,
+    complementarity="min",
+    length: float = 200.0,
+    injection: float | None = None,
+    physics: Physics | None = None,
+    boundary=_STATE,
+    initial=_STATE,
 ) -> Problem:
     """Build the hydrogen-injection column of docs/twophase.md.
 
@@ -69,21 +94,32 @@ def benchmark(
         Years after which the injection stops (the MoMaS variant: 5e5).
     complementarity : {"min", "fb"}
         Newton-min or Newton on Fischer-Burmeister (:class:`Problem`).
+    length, injection, physics, boundary, initial : optional
+        Another column (m), rate (kg m^-2 per year), rock and fluids
+        (replacing ``viscosity``), Dirichlet and initial ``(S, P, chi)``:
+        scene files (:mod:`fastmem.twophase.scene`) change them.
     """
     if viscosity not in VISCOSITIES:
         raise ParameterError(
             f"viscosity must be one of {', '.join(VISCOSITIES)}, got {viscosity!r}"
         )
-    grid = Grid.column(200.0, n_cells)
+    grid = Grid.column(length, n_cells)
+    rate = INJECTION_PER_YEAR if injection is None else float(injection)
+    if not (math.isfinite(rate) and rate >= 0):
+        raise ParameterError(
+            f"injection must be a rate >= 0 in kg m^-2 per year, got {injection!r}"
+        )
     hydrogen = np.zeros(grid.n)
-    hydrogen[0] = INJECTION_PER_YEAR / YEAR
-    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, None, complementarity)
+    hydrogen[0] = rate / YEAR
+    prob = _hydrogen_problem(
+        grid, viscosity, hydrogen, stop_injection, None, complementarity, physics, boundary, initial
+    )
     prob.scene = {
         "name": "benchmark",
         "viscosity": viscosity,
         "cells": n_cells,
-        "length": 200.0,
-        "injection_per_year": INJECTION_PER_YEAR,
+        "length": length,
+        "injection_per_year": rate,
         "stop_injection_years": stop_injection,
     }
     return prob
@@ -100,6 +136,9 @@ def section(
     injection: float | None = None,
     stop_injection=None,
     complementarity: str = "min",
+    physics: Physics | None = None,
+    boundary=_STATE,
+    initial=_STATE,
 ) -> Problem:
     """Build the 2D section: ``length x height`` m, hydrogen injected along ``stretch`` of x = 0.
 
@@ -113,7 +152,8 @@ def section(
     appear for about a million years).  It is shared among the left-edge
     vertices by the length of their dual boundary within the stretch (per
     metre of depth).  The monitor cell is the left-edge vertex nearest the
-    stretch's middle.
+    stretch's middle.  ``physics``, ``boundary``, ``initial``: as for
+    :func:`benchmark`.
     """
     if viscosity not in VISCOSITIES:
         raise ParameterError(
@@ -137,7 +177,17 @@ def section(
     hydrogen = share[free] * rate / YEAR
     left = np.flatnonzero(np.isclose(grid.centres[:, 0], 0.0))
     monitor = int(left[np.argmin(np.abs(grid.centres[left, 1] - 0.5 * (y0 + y1)))])
-    prob = _hydrogen_problem(grid, viscosity, hydrogen, stop_injection, monitor, complementarity)
+    prob = _hydrogen_problem(
+        grid,
+        viscosity,
+        hydrogen,
+        stop_injection,
+        monitor,
+        complementarity,
+        physics,
+        boundary,
+        initial,
+    )
     prob.scene = {
         "name": "section",
         "viscosity": viscosity,
@@ -174,6 +224,8 @@ class Run:
     in_place: list = field(default_factory=list)
     injected: list = field(default_factory=list)
     outflow: list = field(default_factory=list)
+    #: cumulated hydrogen outflow of the equilibrated flux (kg; with the estimators)
+    outflow_equilibrated: list = field(default_factory=list)
     kept_times: list = field(default_factory=list)
     states: list = field(default_factory=list)
     retries: list = field(default_factory=list)  # (time, dt, reason)
@@ -183,8 +235,26 @@ class Run:
 
     @property
     def balance(self) -> np.ndarray:
-        """``in place + outflow - injected`` per step (kg): round-off at convergence."""
+        """``in place + outflow - injected`` per step (kg): round-off at convergence.
+
+        With the two-point fluxes of the state: a strategy that stops Newton-min
+        early leaves its residual here (docs/twophase.md §6).
+        """
         return np.array(self.in_place) + np.array(self.outflow) - np.array(self.injected)
+
+    @property
+    def balance_equilibrated(self) -> np.ndarray:
+        """The same with the equilibrated flux's outflow: round-off for every strategy.
+
+        The equilibrated flux (:meth:`Estimator.equilibrated`) balances every
+        cell's storage change exactly, the residual moved into the flux (and
+        into the estimators).  Empty without estimators.
+        """
+        if not self.outflow_equilibrated:
+            return np.zeros(0)
+        return (
+            np.array(self.in_place) + np.array(self.outflow_equilibrated) - np.array(self.injected)
+        )
 
     @property
     def first_gas_step(self) -> int | None:
@@ -267,6 +337,7 @@ def simulate(
     t = 0.0
     injected = 0.0
     outflow = 0.0
+    outflow_eq = 0.0
     every = None
     if isinstance(keep, str):
         if keep != "all":
@@ -333,6 +404,9 @@ def simulate(
         qw, qh = problem.sources(t + step)
         fw_out, fh_out = problem.outflow(new)
         outflow += fh_out * step
+        if estimator is not None:
+            _, sigma_b = estimator.equilibrated(new, x, problem.gas(new), step, t + step)
+            outflow_eq += float(np.sum(sigma_b[:, 1])) * step
         injected += float(np.sum(qh)) * step
         x_prev, x = x, new
         t += step
@@ -352,6 +426,8 @@ def simulate(
         run.in_place.append(problem.hydrogen_in_place(x))
         run.injected.append(injected)
         run.outflow.append(outflow)
+        if estimator is not None:
+            run.outflow_equilibrated.append(outflow_eq)
         if stats.estimate is not None:
             e = stats.estimate
             run.eta.append((e.disc, e.lin, e.alg))

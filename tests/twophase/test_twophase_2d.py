@@ -74,7 +74,8 @@ def test_block_ilu_kernel_against_its_reference():
     indptr, indices = bsr.indptr.astype(np.int64), bsr.indices.astype(np.int64)
     blocks = bsr.data.copy()  # the kernel factors in place
     ref = _reference_bilu0(indptr, indices, blocks)
-    diag_pos, inv_diag = bilu0_factor(indptr, indices, blocks)
+    diag_pos, inv_diag, singular = bilu0_factor(indptr, indices, blocks)
+    assert singular == -1
     r = np.random.default_rng(1).standard_normal(bsr.shape[0])
     z = bilu0_solve(indptr, indices, blocks, diag_pos, inv_diag, r)
     assert np.allclose(z, _reference_solve(ref, r), rtol=1e-11, atol=1e-12)
@@ -93,7 +94,7 @@ def test_block_ilu_is_exact_on_a_block_tridiagonal_matrix():
     a = bsr.tocsr()
     data = bsr.data.copy()
     ip, ix = bsr.indptr.astype(np.int64), bsr.indices.astype(np.int64)
-    diag_pos, inv_diag = bilu0_factor(ip, ix, data)
+    diag_pos, inv_diag, singular = bilu0_factor(ip, ix, data)
     r = rng.standard_normal(3 * n)
     z = bilu0_solve(ip, ix, data, diag_pos, inv_diag, r)
     assert np.allclose(z, spsolve(a.tocsc(), r), rtol=1e-10, atol=1e-12)
