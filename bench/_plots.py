@@ -424,7 +424,14 @@ def plot_twophase(payload, path):
     colors = {"exact": "tab:red", "inexact": "tab:orange", "adaptive": "tab:blue"}
     styles = {"ilu": "-", "cpr": "--", "direct": ":"}
     ax = axes[3]
-    for r in rows:
+    main = [
+        r
+        for r in rows
+        if r.get("complementarity", "min") == "min"
+        and r.get("weights", "volume") == "volume"
+        and r.get("gamma", 1e-3) == 1e-3
+    ]
+    for r in main:
         steps = np.arange(1, len(r["cumulative_linear"]) + 1)
         name = f"{r['strategy']}/{r['linear_solver']}"
         style, color = styles[r["linear_solver"]], colors[r["strategy"]]

@@ -110,7 +110,7 @@ def bilu0_factor(indptr, indices, blocks):
                 m = marker[indices[q]]
                 if m >= 0:
                     _gemm_sub(blocks[m], blocks[p], blocks[q])
-        if not _invert(blocks[diag_pos[i]], inv_diag[i], work):
+        if diag_pos[i] < 0 or not _invert(blocks[diag_pos[i]], inv_diag[i], work):
             return diag_pos, inv_diag, i
         for p in range(indptr[i], indptr[i + 1]):
             marker[indices[p]] = -1

@@ -40,7 +40,7 @@ def add_twophase_parser(sub) -> None:
         help="benchmark (the column), variant (injection stops halfway), section (2D), "
         "or a scene file FILE.toml (docs/twophase.md §7)",
     )
-    r.add_argument("--viscosity", choices=("momas", "paper"), default="momas")
+    r.add_argument("--viscosity", choices=("momas", "paper"), default=None, help="(momas)")
     r.add_argument(
         "--strategy", choices=("exact", "inexact", "adaptive"), default=None, help="(adaptive)"
     )
@@ -50,9 +50,9 @@ def add_twophase_parser(sub) -> None:
         default=None,
         help="inner solver (default: ilu in 1D, cpr for the section)",
     )
-    r.add_argument("--cells", type=int, default=1000, help="cells of the column")
-    r.add_argument("--nx", type=int, default=500, help="section: rectangles along x")
-    r.add_argument("--ny", type=int, default=50, help="section: rectangles along y")
+    r.add_argument("--cells", type=int, default=None, help="cells of the column (1000)")
+    r.add_argument("--nx", type=int, default=None, help="section: rectangles along x (500)")
+    r.add_argument("--ny", type=int, default=None, help="section: rectangles along y (50)")
     r.add_argument(
         "--steps", type=int, default=None, help="time steps (default 100; variant 200; section 20)"
     )
@@ -84,8 +84,8 @@ def add_twophase_parser(sub) -> None:
     r.add_argument(
         "--complementarity",
         choices=("min", "fb"),
-        default="min",
-        help="Newton-min, or Newton on Fischer-Burmeister",
+        default=None,
+        help="Newton-min (min), or Newton on Fischer-Burmeister",
     )
     r.add_argument(
         "--max-front-cells",
@@ -133,28 +133,36 @@ def _cmd_run(args) -> int:
     if not out.resolve().parent.is_dir():
         raise ParameterError(f"--output: the folder {str(out.resolve().parent)!r} does not exist")
     options = {"strategy": "adaptive", "gamma_alg": 1e-3, "gamma_lin": 1e-3, "nu": 1}
+    scene_flags = ("viscosity", "cells", "nx", "ny", "complementarity")
     if from_file:
+        given = [f"--{n}" for n in scene_flags if getattr(args, n) is not None]
+        if given:
+            raise ParameterError(
+                f"{', '.join(given)} do not apply to a scene file: set them in {args.scene}"
+            )
         problem, found = load_scene(args.scene)  # refuses bad units before any work
         dt = found.pop("dt")
         t_end = found.pop("t_end")
         options.update(found)
         if args.dt_years is not None:
             dt = args.dt_years * YEAR
-        steps = args.steps or max(1, round(t_end / dt))
+        if args.steps:
+            t_end = args.steps * dt
+        steps = math.ceil(t_end / dt * (1 - 1e-12))
     else:
         steps = args.steps or {"benchmark": 100, "variant": 200, "section": 20}[args.scene]
         dt = (args.dt_years or 5000.0) * YEAR
+        t_end = steps * dt
+        viscosity = args.viscosity or "momas"
+        complementarity = args.complementarity or "min"
         if args.scene == "section":
             problem = section(
-                args.nx, args.ny, args.viscosity, complementarity=args.complementarity
+                args.nx or 500, args.ny or 50, viscosity, complementarity=complementarity
             )
         else:
             stop = steps / 2 * dt / YEAR if args.scene == "variant" else None
             problem = benchmark(
-                args.viscosity,
-                args.cells,
-                stop_injection=stop,
-                complementarity=args.complementarity,
+                viscosity, args.cells or 1000, stop_injection=stop, complementarity=complementarity
             )
     for name in ("strategy", "gamma_alg", "gamma_lin", "nu"):
         if getattr(args, name) is not None:
@@ -187,7 +195,7 @@ def _cmd_run(args) -> int:
     run = simulate(
         problem,
         dt=dt,
-        t_end=steps * dt,
+        t_end=t_end,
         linear_solver=solver,
         weights=args.weights,
         **options,

@@ -85,6 +85,7 @@ def save_run(run, path) -> Path:
             f.attrs["strategy"] = run.strategy
             f.attrs["linear_solver"] = run.linear_solver
             f.attrs["seconds"] = float(run.seconds)
+            f.attrs["initial_in_place"] = float(run.initial_in_place)
             gg = f.create_group("grid")
             for name in ("volume", "centres", "faces", "geometry", "boundary_cells"):
                 gg.create_dataset(name, data=getattr(g, name))
@@ -148,6 +149,7 @@ def info_run(path) -> dict:
     gone = [i for i in range(1, gas.size) if gas[i] == 0 and gas[i - 1] > 0]
     eta = st["eta"]
     year = 365.25 * 86400.0
+    start = float(d.get("initial_in_place", 0.0))
     return {
         "file": str(path),
         "format_version": int(d["format_version"]),
@@ -166,10 +168,14 @@ def info_run(path) -> dict:
         "gas_vanishes_years": float(st["time"][gone[0]] / year) if gone else None,
         "max_gas_cells": int(gas.max()) if gas.size else 0,
         "balance_max_kg": float(
-            np.abs(st["in_place"] + st["outflow"] - st["injected"]).max() if gas.size else 0.0
+            np.abs(st["in_place"] - start + st["outflow"] - st["injected"]).max()
+            if gas.size
+            else 0.0
         ),
         "balance_equilibrated_max_kg": (
-            float(np.abs(st["in_place"] + st["outflow_equilibrated"] - st["injected"]).max())
+            float(
+                np.abs(st["in_place"] - start + st["outflow_equilibrated"] - st["injected"]).max()
+            )
             if st["outflow_equilibrated"].size
             else None
         ),

@@ -27,10 +27,13 @@ then the projection on the admissible box):
 * the complementarity rows enter ``eta_lin`` (nonlinear minus linearised) and
   ``eta_alg`` (linearised residual) like a third component.
 
+No proof that ``eta_disc + eta_lin + eta_alg`` bounds an error of the scheme
+is claimed (docs/twophase.md §4).
+
 Components are measured in pore volume per second: water divided by
 ``rho_w``, hydrogen by ``H P_ref``.  Every estimator is multiplied by
-``sqrt(dt)`` (the ``L^2`` norm over the step).  ``eta = eta_disc + eta_lin +
-eta_alg`` by the triangle inequality on the three flux pieces.
+``sqrt(dt)`` (the ``L^2`` norm over the step).  :attr:`Estimate.total` is
+``eta_disc + eta_lin + eta_alg``.
 """
 
 from __future__ import annotations
@@ -186,8 +189,10 @@ class Estimator:
         mid = 0.5 * (x + x_old)
         one, two = prob.branches(mid)
         changed = prob.gas(x) != prob.gas(x_old)
-        prod = np.where(
-            changed, np.sqrt(np.maximum(one, 0) * np.maximum(two, 0) / self.min_scale[1]), 0
+        # the product of the two (dimensionless) arguments, in the min rows' units
+        prod = (
+            np.where(changed, np.sqrt(np.maximum(one, 0) * np.maximum(two, 0) / self.henry_ref), 0)
+            / self.min_scale[0]
         )
         pore = prob.grid.volume * prob.physics.porosity / dt
         transition = self.dual_norm2(pore * prod)
@@ -207,7 +212,7 @@ class Estimator:
         r_now = prob.residual(x, x_old, dt, t, gas)
         c_now = prob.complementarity_residual(x)
         alg_min = self.min_rows_as_rate(r_alg[:, 2], gas, dt)
-        lin_min = self.min_rows_as_rate(c_now, gas, dt) - alg_min
+        lin_min = self.min_rows_as_rate(c_now, prob.gas(x), dt) - alg_min
         alg2 = self.dual_norm2(np.column_stack([r_alg[:, :2] / self.scale, alg_min]))
         lin2 = self.dual_norm2(
             np.column_stack([(r_now[:, :2] - r_alg[:, :2]) / self.scale, lin_min])

@@ -174,6 +174,20 @@ class Grid:
             raise ParameterError(f"Grid.faces must name cells 0..{n - 1}")
         if self.boundary_geometry.shape != self.boundary_cells.shape:
             raise ParameterError("Grid.boundary_geometry must hold one value per boundary face")
+        if self.boundary_cells.size:
+            if self.boundary_cells.min() < 0 or self.boundary_cells.max() >= n:
+                bad = self.boundary_cells[(self.boundary_cells < 0) | (self.boundary_cells >= n)]
+                raise ParameterError(
+                    f"Grid.boundary_cells must name cells 0..{n - 1}, got {int(bad[0])}"
+                )
+            if not (
+                np.isfinite(self.boundary_geometry).all() and (self.boundary_geometry > 0).all()
+            ):
+                i = int(np.flatnonzero(~(self.boundary_geometry > 0))[0])
+                value = float(self.boundary_geometry[i])
+                raise ParameterError(
+                    f"Grid.boundary_geometry must be positive, got {value!r} on boundary face {i}"
+                )
 
     @property
     def n(self) -> int:
@@ -328,6 +342,12 @@ class Problem:
             )
         #: "min" (Newton-min) or "fb" (Newton on the Fischer-Burmeister function)
         self.complementarity = complementarity
+        if grid.boundary_cells.size == 0:
+            raise ParameterError(
+                "the grid has no Dirichlet face: water is incompressible, so with no-flow "
+                "boundaries only the pressure is undetermined; give the grid a Dirichlet face "
+                "(Grid.column(..., right_dirichlet=True), or dirichlet= in mesh_grid)"
+            )
         self.grid = grid
         self.physics = Physics() if physics is None else physics
         self.laws = self.physics.laws()

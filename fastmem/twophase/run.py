@@ -9,7 +9,8 @@ the profiles and the hydrogen mass balance.
 
 A step is retried with half the length, and the run says so on its logger,
 when Newton-min fails or when more than ``max_front_cells`` cells change
-phase in it; the steps grow back by doubling after a success.
+phase in it; the steps grow back by doubling after two steps without a
+retry.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ import numpy as np
 from ..errors import ConvergenceError, ParameterError
 from ..mesh.mesh import Mesh
 from .estimators import Estimator
+from .linear import LINEAR_SOLVERS
 from .model import YEAR, Grid, Physics, Problem, mesh_grid
-from .newton import newton_min
+from .newton import STRATEGIES, newton_min
 
 __all__ = ["INJECTION_PER_YEAR", "VISCOSITIES", "Run", "benchmark", "section", "simulate"]
 
@@ -230,25 +232,34 @@ class Run:
     states: list = field(default_factory=list)
     retries: list = field(default_factory=list)  # (time, dt, reason)
     residuals: list = field(default_factory=list)  # Newton-min residual history per step
+    initial_in_place: float = 0.0  # hydrogen in the domain at t = 0 (kg)
     final: np.ndarray | None = None
     seconds: float = 0.0
 
     @property
     def balance(self) -> np.ndarray:
-        """``in place + outflow - injected`` per step (kg): round-off at convergence.
+        """``in place - initially in place + outflow - injected`` per step (kg).
 
-        With the two-point fluxes of the state: a strategy that stops Newton-min
-        early leaves its residual here (docs/twophase.md §6).
+        With the two-point fluxes of the state: round-off when every step's
+        Newton-min converged; a strategy that stops early leaves its residual
+        here (docs/twophase.md §6).
         """
-        return np.array(self.in_place) + np.array(self.outflow) - np.array(self.injected)
+        return (
+            np.array(self.in_place)
+            - self.initial_in_place
+            + np.array(self.outflow)
+            - np.array(self.injected)
+        )
 
     @property
     def balance_equilibrated(self) -> np.ndarray:
-        """The same with the equilibrated flux's outflow: round-off for every strategy.
+        """The same with the equilibrated flux's outflow: round-off by construction.
 
         The equilibrated flux (:meth:`Estimator.equilibrated`) balances every
-        cell's storage change exactly, the residual moved into the flux (and
-        into the estimators).  Empty without estimators.
+        cell's storage change exactly whatever the state, the residual moved
+        into the flux (and into the estimators): this says the flux handed out
+        is conservative, it does not check the solver (:attr:`balance` does).
+        Empty without estimators.
         """
         if not self.outflow_equilibrated:
             return np.zeros(0)
@@ -290,6 +301,7 @@ def simulate(
     estimate: bool = True,
     extrapolate: bool = True,
     weights: str = "volume",
+    check_drop: float = 1.0,
     progress=None,
 ) -> Run:
     """Run backward Euler from the problem's initial state to ``t_end``.
@@ -304,8 +316,9 @@ def simulate(
     gamma_alg, gamma_lin, nu : float, float, int
         Adaptive stopping parameters (docs/twophase.md §5).
     keep : sequence of float, int or "all"
-        Which profiles are kept: the steps ending nearest to the given times
-        (s), every step (``"all"``), or every k-th step and the last (an int k).
+        Which profiles are kept: the step ending nearest to each given time
+        (s, in (0, t_end]), every step (``"all"``), or every k-th step and the
+        last (an int k).  A step never crosses the time the injection stops.
     max_front_cells : int, optional
         Retry a step with half its length when more cells change phase in it.
     min_dt : float, optional
@@ -317,6 +330,11 @@ def simulate(
         (projected on the admissible box) instead of the last state.
     weights : {"volume", "mass"}
         How the estimators weigh the components (:data:`~fastmem.twophase.estimators.WEIGHTS`).
+    check_drop : float
+        Adaptive strategy: evaluate the estimators inside GMRES only once its
+        residual has fallen below ``check_drop`` times its value at the last
+        evaluation (1: every ``nu`` iterations, the paper's rule; 0.5: after
+        each halving).
     progress : callable, optional
         Called with a dict after every accepted step.
     """
@@ -325,12 +343,26 @@ def simulate(
             isinstance(value, (int, float)) and math.isfinite(value) and value > 0
         ):
             raise ParameterError(f"{name} must be a positive time in seconds, got {value!r}")
+    if not (isinstance(check_drop, (int, float)) and 0 < check_drop <= 1):
+        raise ParameterError(f"check_drop must be in (0, 1], got {check_drop!r}")
     if isinstance(nu, bool) or not (isinstance(nu, int) and nu >= 1):
         raise ParameterError(f"nu must be an integer >= 1, got {nu!r}")
     for name, value in (("gamma_alg", gamma_alg), ("gamma_lin", gamma_lin)):
         if not (isinstance(value, (int, float)) and 0 < value < 1):
             raise ParameterError(f"{name} must be in (0, 1), got {value!r}")
+    if strategy not in STRATEGIES:
+        raise ParameterError(f"strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
+    if linear_solver not in LINEAR_SOLVERS:
+        raise ParameterError(
+            f"linear_solver must be one of {', '.join(LINEAR_SOLVERS)}, got {linear_solver!r}"
+        )
+    if max_front_cells is not None and not (
+        isinstance(max_front_cells, (int, np.integer)) and max_front_cells >= 1
+    ):
+        raise ParameterError(f"max_front_cells must be an integer >= 1, got {max_front_cells!r}")
     min_dt = dt / 1024 if min_dt is None else min_dt
+    if not (isinstance(min_dt, (int, float)) and 0 < min_dt <= dt):
+        raise ParameterError(f"min_dt must be in (0, dt], got {min_dt!r}")
     estimator = Estimator(problem, weights) if (estimate or strategy == "adaptive") else None
     x = problem.initial.copy()
     run = Run(problem, strategy=strategy, linear_solver=linear_solver)
@@ -349,6 +381,12 @@ def simulate(
         every, keep = int(keep), []
     else:
         keep = sorted(float(v) for v in keep)
+        bad = [k for k in keep if not 0 < k <= t_end * (1 + 1e-12)]
+        if bad:
+            raise ParameterError(
+                f"keep times must lie in (0, t_end] = (0, {t_end:.6g}] s, got {bad[0]!r}"
+            )
+    pending = list(keep)  # requested times not yet served
     flux_old = None
     if estimator is not None:
         fi, fb = problem.fluxes(x)
@@ -356,8 +394,14 @@ def simulate(
     t0 = time.perf_counter()
     step = dt
     x_prev = None  # the state one step back, for the extrapolated first guess
+    calm = 2  # accepted steps since the last retry: the step grows back after two
+    stop = problem.stop_injection
+    run.initial_in_place = problem.hydrogen_in_place(x)
     while t < t_end * (1 - 1e-12):
         step = min(step, t_end - t)
+        if stop is not None and t < stop * (1 - 1e-12) and t + step > stop * (1 + 1e-12):
+            step = stop - t  # a step ends where the injection stops: none is lost or added
+        retried = False
         while True:
             guess = None
             if extrapolate and x_prev is not None:
@@ -376,6 +420,7 @@ def simulate(
                 nu=nu,
                 max_newton=max_newton,
                 x0=guess,
+                check_drop=check_drop,
             )
             reason = None
             if not stats.converged:
@@ -387,6 +432,7 @@ def simulate(
             if reason is None:
                 break
             run.retries.append((t, step, reason))
+            retried = True
             logger.warning(
                 "t = %.6g years, dt = %.4g years: %s; retrying with dt = %.4g years",
                 t / YEAR,
@@ -435,7 +481,16 @@ def simulate(
             flux_old = (fi / estimator.scale, fb / estimator.scale)
         last = t >= t_end * (1 - 1e-12)
         wanted = every is not None and (len(run.times) % every == 0 or last)
-        if wanted or (keep and any(abs(t - k) <= 0.5 * step for k in keep)):
+        while pending and pending[0] <= t * (1 + 1e-12):
+            k = pending.pop(0)  # the nearer of the two step ends around k
+            t_before = run.times[-2] if len(run.times) > 1 else None
+            if t_before is not None and abs(t_before - k) < abs(t - k):
+                if not run.kept_times or run.kept_times[-1] != t_before:
+                    run.states.append(x_prev.copy())
+                    run.kept_times.append(t_before)
+            else:
+                wanted = True
+        if wanted:
             run.states.append(x.copy())
             run.kept_times.append(t)
         if progress is not None:
@@ -451,7 +506,9 @@ def simulate(
             if stats.estimate is not None:
                 row.update(eta_disc=e.disc, eta_lin=e.lin, eta_alg=e.alg)
             progress(row)
-        step = min(dt, 2 * step)
+        calm = 0 if retried else calm + 1
+        if calm >= 2:  # not straight back to the length that just failed
+            step = min(dt, 2 * step)
     run.final = x
     run.seconds = time.perf_counter() - t0
     return run

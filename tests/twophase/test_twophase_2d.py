@@ -186,3 +186,24 @@ def test_cpr_needs_far_fewer_iterations_than_block_ilu_in_2d():
         assert np.linalg.norm(a @ y - b) <= 1e-7 * np.linalg.norm(b)
         its[kind] = stats.iterations
     assert 3 * its["cpr"] <= its["ilu"], its
+
+
+def test_gmres_checks_after_each_drop_only():
+    """``drop`` spares estimator checks while the residual has not fallen enough."""
+    prob = section(60, 6)
+    a, b, scales = _system(prob, 3)
+    m = preconditioner("ilu", a, prob.grid.n, scales)
+    calls = {1.0: [], 0.1: []}
+    for drop, seen in calls.items():
+        gmres(
+            a,
+            b,
+            m,
+            rtol=1e-12,
+            maxiter=400,
+            every=1,
+            drop=drop,
+            check=lambda x, k, s=seen: s.append(k) and False,
+        )
+    assert len(calls[0.1]) < len(calls[1.0])
+    assert len(calls[1.0]) >= 10

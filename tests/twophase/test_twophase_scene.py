@@ -100,3 +100,15 @@ def test_command_line_runs_a_scene_file(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "bad.h5").exists()
     assert main(["twophase", "run", "column"]) == 2
     assert "scene must be one of" in capsys.readouterr().err
+
+
+def test_command_line_honours_the_scene_files_end_and_refuses_its_flags(tmp_path, capsys):
+    scene = tmp_path / "short.toml"
+    text = EXAMPLE.read_text().replace('end = "5e5 year"', 'end = "12000 year"')
+    scene.write_text(text.replace("cells = 1000", "cells = 40"))
+    out = tmp_path / "short.h5"
+    assert main(["twophase", "run", str(scene), "-o", str(out), "--quiet"]) == 0
+    assert main(["info", str(out), "--json"]) == 0
+    assert '"t_end_years": 12000.0' in capsys.readouterr().out
+    assert main(["twophase", "run", str(scene), "--cells", "80", "-o", str(out)]) == 2
+    assert "--cells do not apply to a scene file" in capsys.readouterr().err
