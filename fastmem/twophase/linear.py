@@ -99,8 +99,10 @@ def pressure_stages(a: sp.csr_matrix, n_cells: int, row_scales=None):
         rows = 3 * np.arange(n_cells) + row_offset  # cell rows are ordered min, water, hydrogen
         cols = 3 * np.arange(n_cells) + col  # unknowns S, P, chi
         weight = np.ones(n_cells) if row_scales is None else np.asarray(row_scales)[rows]
-        block = (sp.diags(weight) @ a[rows][:, cols]).tocsr()
-        stages.append((rows, cols, weight, pyamg.smoothed_aggregation_solver(block, **AMG_OPTIONS)))
+        a_rows = a[rows].tocsr()
+        block = (sp.diags(weight) @ a_rows[:, cols]).tocsr()
+        ml = pyamg.smoothed_aggregation_solver(block, **AMG_OPTIONS)
+        stages.append((rows, cols, weight, ml, a_rows))
     return stages
 
 
@@ -122,11 +124,10 @@ def preconditioner(kind: str, a: sp.csr_matrix, n_cells: int, row_scales=None, s
 
     def apply(r):
         x1 = np.zeros_like(r)
-        rest = r
-        for rows, cols, weight, ml in stages:
-            x1[cols] += ml.solve(weight * rest[rows], tol=1e-30, maxiter=1, cycle="V")
-            rest = r - a @ x1
-        return x1 + ilu(rest)
+        for rows, cols, weight, ml, a_rows in stages:
+            rest = r[rows] - a_rows @ x1  # only the rows this stage solves
+            x1[cols] += ml.solve(weight * rest, tol=1e-30, maxiter=1, cycle="V")
+        return x1 + ilu(r - a @ x1)
 
     apply.stages = stages
     return apply
