@@ -267,3 +267,31 @@ def test_kept_profiles_are_the_steps_nearest_to_the_times_asked():
     for t, state in zip(run.kept_times, run.states, strict=True):
         assert state.shape == (40, 3)
         assert t in run.times
+
+
+def test_after_a_retry_the_step_does_not_double_straight_back():
+    prob = small(120)
+    run = simulate(
+        prob, t_end=6 * 5000 * YEAR, linear_solver="direct", max_front_cells=2, estimate=False
+    )
+    starts = np.r_[0.0, np.array(run.times[:-1])]
+    retried = {t for t, _, _ in run.retries}
+    checked = 0
+    for i in range(len(run.dts) - 1):
+        if any(abs(starts[i] - t) < 1e-6 * YEAR for t in retried):
+            assert run.dts[i + 1] <= run.dts[i] * (1 + 1e-12)  # no doubling right after
+            checked += 1
+    assert checked >= 1
+
+
+def test_newton_does_not_accept_a_step_the_projection_swallowed():
+    """A state pushed against the box (chi < 0 wanted) is not declared converged on a zero step."""
+    prob = small(30)
+    x_old = prob.initial.copy()
+    dt = 5000 * YEAR
+    # a huge negative hydrogen source drives chi below zero: the projection keeps chi >= 0,
+    # the update vanishes, the residual does not
+    prob.hydrogen[:] = -1e-6
+    x, stats = newton_min(prob, x_old, dt, dt, linear_solver="direct", max_newton=6)
+    assert not stats.converged
+    assert stats.residuals[-1] > 1e-5
