@@ -30,6 +30,7 @@ import numpy as np
 from ..about import package_version
 from ..errors import ArchiveError, ParameterError
 from ..io.writer import atomic_file
+from .model import YEAR
 
 __all__ = ["FORMAT", "export_run", "info_run", "is_archive", "load_run", "save_run"]
 
@@ -148,7 +149,7 @@ def info_run(path) -> dict:
     first = int(np.argmax(gas > 0)) if (gas > 0).any() else None
     gone = [i for i in range(1, gas.size) if gas[i] == 0 and gas[i - 1] > 0]
     eta = st["eta"]
-    year = 365.25 * 86400.0
+    year = YEAR
     start = float(d.get("initial_in_place", 0.0))
     return {
         "file": str(path),
@@ -236,7 +237,7 @@ def export_run(path, out) -> Path:
     if out.suffix == ".vtu":
         write_vtu(out, -1)
         return out
-    year = 365.25 * 86400.0
+    year = YEAR
     entries = []
     for k, t in enumerate(prof["time"]):
         name = f"{out.stem}_{k:04d}.vtu"

@@ -46,6 +46,7 @@ class StepStats:
     linear_per_step: list = field(default_factory=list)
     estimate: object = None  # the Estimate of the returned iterate (or None)
     estimates: list = field(default_factory=list)  # per Newton step (adaptive)
+    fluxes: tuple | None = None  # the estimator's scaled fluxes at the returned iterate
 
 
 def _scaled_norm(problem, r, dt, gas):
@@ -169,7 +170,10 @@ def newton_min(
         step = float(np.max(np.abs(x_new - x) / units))
         stats.newton = k + 1
         if estimator is not None and strategy == "adaptive":
-            est, _ = estimator.estimate(x_new, x_old, algebraic(y, alpha), gas, dt, t, flux_old)
+            est, fluxes = estimator.estimate(
+                x_new, x_old, algebraic(y, alpha), gas, dt, t, flux_old
+            )
+            stats.fluxes = fluxes
             stats.estimates.append(est)
             stats.estimate = est
             x = x_new
@@ -193,5 +197,5 @@ def newton_min(
     if estimator is not None and strategy != "adaptive":
         gas = problem.gas(x)
         r_alg = np.zeros((problem.grid.n, 3))  # the remainder is all linearisation here
-        stats.estimate, _ = estimator.estimate(x, x_old, r_alg, gas, dt, t, flux_old)
+        stats.estimate, stats.fluxes = estimator.estimate(x, x_old, r_alg, gas, dt, t, flux_old)
     return x, stats

@@ -8,10 +8,9 @@ import numpy as np
 
 from ..errors import ParameterError
 from .archive import load_run
+from .model import YEAR
 
 __all__ = ["plot_run"]
-
-YEAR = 365.25 * 86400.0
 
 
 def _row(grid, monitor):

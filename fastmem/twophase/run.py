@@ -477,8 +477,7 @@ def simulate(
         if stats.estimate is not None:
             e = stats.estimate
             run.eta.append((e.disc, e.lin, e.alg))
-            fi, fb = problem.fluxes(x)
-            flux_old = (fi / estimator.scale, fb / estimator.scale)
+            flux_old = stats.fluxes  # the scaled fluxes the estimate computed at x
         last = t >= t_end * (1 - 1e-12)
         wanted = every is not None and (len(run.times) % every == 0 or last)
         while pending and pending[0] <= t * (1 + 1e-12):
