@@ -52,6 +52,7 @@ BENCHMARKS = (
     "obstacle",
     "peers",
     "twophase",
+    "manycore",
 )
 
 
@@ -294,6 +295,20 @@ def _threads(d, v):
     v["threads_max_rel_diff"] = f"{max(r['max_rel_diff'] for r in rows):.1e}"
 
 
+def _manycore(d, v):
+    rows = [r for r in d["rows"] if "solve_s" in r and not r.get("large")]
+    n = max(r["n"] for r in rows)
+    for r in rows:
+        if r["n"] == n and r["threads"] > 1 and "solve_speedup" in r:
+            tag = f"{r.get('scene', 'default')}_{r['multigrid']}_{r['threads']}"
+            v[f"manycore_solve_speedup_{tag}"] = f"{r['solve_speedup']:.2f}"
+            v[f"manycore_estimate_speedup_{tag}"] = f"{r['estimate_speedup']:.2f}"
+    v["manycore_n"] = n
+    first = [r for r in rows if r.get("first_solve_in_process")]
+    if first:
+        v["manycore_first_solve_pu"] = f"{first[0]['solve_pu']:.2f}"
+
+
 def _exact_solve(d, v):
     diffs = [
         r["max_abs_diff_u_vs_decoupled"] for r in d["rows"] if "max_abs_diff_u_vs_decoupled" in r
@@ -466,6 +481,7 @@ _EXTRACT = {
     "work_precision": _work_precision,
     "scaling": _scaling,
     "threads": _threads,
+    "manycore": _manycore,
     "direct_ordering": _direct_ordering,
     "adaptivity": _adaptivity,
     "coldstart": _coldstart,

@@ -57,6 +57,7 @@ def solve(
     check_every: int = 1,
     amg_options: dict | None = None,
     amg_reuse: float = 0.05,
+    multigrid: str = "geometric",
     nested: bool | str = "auto",
     full_history: bool = False,
     keep_iterates: bool = False,
@@ -122,6 +123,15 @@ def solve(
         updated to every new active set (Galerkin products,
         :meth:`fastmem.linalg.amg.AMGPreconditioner.update`).  0: a new setup whenever
         the active set changed.
+    multigrid : {"geometric", "algebraic"}
+        Preconditioner of the decoupled CGs on the levels of nested iteration
+        (``"inexact"`` and ``"exact-amg"``).  ``"geometric"``: V(1,1) cycles over the
+        chain of nested meshes, whose interpolations are known, with Galerkin
+        coarse operators formed in the kernel threads and hybrid Gauss-Seidel
+        sweeps (:class:`fastmem.linalg.gmg.NestedMG`; the gap system's coarse
+        spaces truncated to the inactive vertices); a mesh without a chain, and the
+        general path, keep pyamg.  ``"algebraic"``: pyamg's smoothed aggregation
+        (``amg_options``) on every level, as before issue 33.
     nested : bool or "auto"
         Without ``initial`` (every method): solve on the chain of coarser meshes
         (:meth:`Mesh.coarser`, down to about 1000 vertices) and prolong each
@@ -242,6 +252,7 @@ def solve(
         check_every=check_every,
         amg_reuse=amg_reuse,
         amg_options=amg_options,
+        multigrid=multigrid,
         memory_limit=memory_limit,
         monitor=monitor,
         full_history=full_history,

@@ -46,6 +46,7 @@ from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, topology
 from ..kernels import flux as _kflux
+from ..linalg import gmg
 from ..linalg.amg import precompile
 from ..linalg.sparse import masked_gap
 from ..mesh.coarsen import locate
@@ -338,8 +339,9 @@ def _precompile_masked() -> None:
 
 
 def _precompile_cycles() -> None:
-    """Compile the multigrid cycle's kernels (hybrid sweep, threaded products)."""
+    """Compile the multigrid cycles' kernels (hybrid sweep, threaded products, nested MG)."""
     precompile()
+    gmg.precompile()
 
 
 def _precompile_locate() -> None:

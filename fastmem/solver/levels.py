@@ -23,6 +23,7 @@ from ..config import get_threads
 from ..estimators.bound import evaluate
 from ..fem.loaddata import expect_estimates
 from ..io.result import Result
+from ..linalg.gmg import NestedChain
 from .history import history_arrays, new_history
 from .nested import coarse_scenes, interpolation_matrix, prolong_triple
 from .newton import newton_min
@@ -92,6 +93,8 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
     eta_disc predicted for ``scene`` (used like the prediction from a coarser level).
     """
     levels = _chain(scene, options, init, timings)
+    geometric = options.inner.multigrid == "geometric"
+    transfers = []  # interior interpolations of the chain so far, finest first
     rows = new_history()
     infos, iterates = [], []
     triple, out = init, None
@@ -105,11 +108,18 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             mat = interpolation_matrix(coarse.mesh, sc.mesh)
             triple = prolong_triple(sc, coarse, triple, mat)
             if _two_grid(options, sc):
-                # the decoupled CG's two-grid cycle for s (fastmem.linalg.amg.TwoGridLaplacian)
                 ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
-                # handed over as a list that newton_min empties: the step's two-grid
-                # cycle is then its only owner and can free it (TwoGridLaplacian.release)
-                prolongation = [mat[ii][:, ic].tocsr()]
+                if geometric:
+                    # the decoupled CGs' geometric multigrid over the whole chain
+                    # (fastmem.linalg.gmg.NestedMG): this level's interpolation joins
+                    # those of the coarser levels
+                    transfers.insert(0, mat[ii][:, ic].tocsr())
+                    prolongation = [NestedChain(transfers)]
+                else:
+                    # the decoupled CG's two-grid cycle for s (fastmem.linalg.amg.TwoGridLaplacian),
+                    # handed over as a list that newton_min empties: the step's two-grid
+                    # cycle is then its only owner and can free it (TwoGridLaplacian.release)
+                    prolongation = [mat[ii][:, ic].tocsr()]
             del mat, coarse
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio
@@ -183,6 +193,7 @@ def _result(scene, options, out, rows, infos, iterates, timings) -> Result:
         "max_inner": inner.max_inner,
         "check_every": inner.check_every,
         "amg_reuse": inner.amg_reuse,
+        "multigrid": inner.multigrid,
         "amg_options": {k: repr(v) for k, v in inner.amg_options.items()},
         "nested_levels": len(infos),
         "levels": infos,

@@ -38,6 +38,7 @@ __all__ = [
     "EXACT_MAX_VERTICES",
     "MAX_VERTICES",
     "METHODS",
+    "MULTIGRIDS",
     "PATHS",
     "AdaptOptions",
     "InnerOptions",
@@ -50,6 +51,8 @@ __all__ = [
 METHODS = ("inexact", "exact-amg", "exact")
 #: Linear-step formulations (docs/method.md §3.2 and 3.3).
 PATHS = ("auto", "general", "decoupled")
+#: Multigrid preconditioners of the CG steps (``multigrid`` of :func:`fastmem.solve`).
+MULTIGRIDS = ("geometric", "algebraic")
 
 #: Default vertex limit of the adaptive loop (about 10M triangles; ~6 GB at the
 #: measured 1.1-1.3 KB per vertex of a solve with the bound).
@@ -136,6 +139,10 @@ class InnerOptions(_Frozen):
     check_every: int = 1
     amg_reuse: float = 0.05
     amg_options: MappingProxyType = field(default=None)
+    #: "geometric": on the levels of nested iteration the decoupled CGs take the
+    #: geometric multigrid of the chain (:class:`fastmem.linalg.gmg.NestedMG`);
+    #: "algebraic": pyamg's smoothed aggregation everywhere (the two-grid cycle for s).
+    multigrid: str = "geometric"
     #: The memory limit of :func:`fastmem.solve` (None, False or bytes, as there): the
     #: memory the inexact step's spilling decision (:func:`fastmem.solver.inexact.memory_pressure`)
     #: measures its estimate against, like the guard before the solve.
@@ -151,6 +158,10 @@ class InnerOptions(_Frozen):
             return _number(name, value)
         if name == "amg_reuse":
             return _number(name, value, allow_zero=True)
+        if name == "multigrid":
+            if value not in MULTIGRIDS:
+                raise ParameterError(f"multigrid must be one of {MULTIGRIDS}, got {value!r}")
+            return value
         if name == "amg_options":
             if isinstance(value, MappingProxyType):
                 value = dict(value)

@@ -47,6 +47,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..linalg.amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner
+from ..linalg.gmg import NestedChain, NestedMG
 from ..linalg.sparse import THREADED_ROWS, masked_gap, threaded
 from .linear import DecoupledStep
 
@@ -290,7 +291,11 @@ class DecoupledCG:
         # iteration, and an unused hierarchy is a setup and ~120 bytes per vertex wasted.
         # On a level of nested iteration (``prolongation``: interpolation from the coarser
         # level, interior to interior) a two-grid cycle over the coarser level's operator
-        if prolongation is not None:
+        #: the nested chain of the geometric multigrid (None: pyamg for the gap system)
+        self.chain = prolongation if isinstance(prolongation, NestedChain) else None
+        if self.chain is not None:
+            self.pre_all = NestedMG(a, self.chain, stats, options=options.amg_options)
+        elif prolongation is not None:
             self.pre_all = TwoGridLaplacian(a, prolongation, options.amg_options, stats)
         else:
             self.pre_all = LazyAMG(a, options.amg_options, stats)
@@ -311,7 +316,18 @@ class DecoupledCG:
         self.cg_w = None  # the previous gap matrix and CG vectors: free them first
         mat = threaded(gap_matrix(self.a_ii, active))
         changed = int(np.count_nonzero(active != self.setup_active))
-        if changed > self.options.amg_reuse * active.size:
+        if self.chain is not None:
+            # geometric multigrid: coarse operators of the truncated interpolation; a new
+            # active set recomputes the coarse rows near the vertices that changed
+            # (NestedMG.update: the hierarchy a new build would give, bit for bit)
+            if not active.any():
+                self.pre_w = self.pre_all
+            elif self.pre_w is self.pre_all:
+                self.pre_w = self._gmg_w(mat, active)
+            elif changed:
+                self.pre_w.update(mat, active)
+            self.setup_active = self.update_active = active.copy()
+        elif changed > self.options.amg_reuse * active.size:
             self.pre_w = None  # free the old hierarchy before the new one is built
             if self.s_done:
                 self._drop_all()
@@ -331,6 +347,19 @@ class DecoupledCG:
         w0 = np.where(active, 0.0, (u1 - u2)[ii])
         self.active = active.copy()
         self.cg_w = PCG(mat, rhs, w0, _WeakCall(self._masked))
+
+    def _gmg_w(self, mat, active, key="amg"):
+        """Build the geometric multigrid of the gap matrix ``mat`` of ``active``."""
+        pre = NestedMG(
+            mat,
+            self.chain,
+            self.stats,
+            base=self.a_ii,
+            active=active,
+            options=self.options.amg_options,
+        )
+        pre.build(key)
+        return pre
 
     def _update_w(self, mat, active):
         """Galerkin update of the gap hierarchy to ``active`` (:meth:`AMGPreconditioner.update`)."""
@@ -361,6 +390,8 @@ class DecoupledCG:
         if self.cg_w is not None:
             self.cg_w.a = self.cg_w.b = None
         self._rebuild = (self.pre_all.built, self.pre_w is not self.pre_all)
+        if self.chain is not None:
+            self.chain.drop_cache()  # the coarse operators of the chain: formed again
         self.pre_all.release()
         if self._rebuild[1]:
             self.pre_w = None
@@ -380,7 +411,11 @@ class DecoupledCG:
         rebuild_all, rebuild_w = self._rebuild
         if rebuild_all:
             self.pre_all.build("spill")
-        if rebuild_w:
+        if rebuild_w and self.chain is not None:
+            same = self.cg_w is not None and np.array_equal(self.setup_active, self.active)
+            mat = self.cg_w.a if same else gap_matrix(a, self.setup_active)
+            self.pre_w = self._gmg_w(mat, self.setup_active, "spill")
+        elif rebuild_w:
             # the hierarchy of the setup's active set (often the current one: its matrix)
             same = self.cg_w is not None and np.array_equal(self.setup_active, self.active)
             mat = self.cg_w.a if same else gap_matrix(a, self.setup_active)

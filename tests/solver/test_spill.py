@@ -68,7 +68,9 @@ def test_flux_runs_without_the_system_matrices(monkeypatch, path, mu):
         original(self)
         cg = self.cg
         if self.decoupled:
-            held = [cg.a_ii, cg.system.a_ii, cg.pre_all.matrix, cg.pre_all.pre, cg.diag]
+            held = [cg.a_ii, cg.system.a_ii, cg.pre_all.matrix, cg.diag]
+            # the hierarchy: pyamg's (LazyAMG, TwoGridLaplacian) or the nested one (NestedMG)
+            held += [getattr(cg.pre_all, k, None) for k in ("pre", "levels", "_ops")]
             if cg.cg_w is not None:
                 held += [cg.cg_w.a, cg.cg_w.b]
             if cg.pre_w is not cg.pre_all:

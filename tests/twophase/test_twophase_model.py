@@ -95,7 +95,10 @@ def test_newton_min_converges_quadratically(gas_state):
     _, stats = newton_min(prob, x, dt, 7 * dt, linear_solver="direct", tol=1e-13)
     assert stats.converged
     r = np.array(stats.residuals)
-    tail = r[(r < 1e-3) & (r > 1e-12)]
+    # above the round-off floor of the residual (the last steps stagnate there: about
+    # 1e-12 on one machine, below it on another); 100x the smallest one reached
+    floor = max(1e-12, 100.0 * r.min())
+    tail = r[(r < 1e-3) & (r > floor)]
     assert tail.size >= 2, stats.residuals
     # r_{k+1} <= C r_k^2 with a modest C on every pair of the tail
     assert np.all(tail[1:] <= 1e2 * tail[:-1] ** 2), stats.residuals

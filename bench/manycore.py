@@ -1,0 +1,233 @@
+"""Solve and estimate on many cores: one process, the Numba threads lowered step by step.
+
+Issue 33's many-core check.  The default scene (docs/method.md §8; with
+``--scenes`` also the manufactured one, :class:`fastmem.problems.Manufactured`)
+on the structured n x n square, in one process:
+
+1. ``fm.warm_up()`` (the kernels compiled or loaded), the mesh built, the
+   Poisson unit measured (:func:`bench._common.poisson_unit`, all threads);
+2. for each thread count, from the most to the fewest (``fm.set_threads``),
+   and each multigrid (``multigrid="geometric"``, the nested-hierarchy
+   multigrid, and ``"algebraic"``, pyamg as before issue 33):
+   ``fm.solve(scene, method="inexact")`` on a fresh scene (nested iteration,
+   the bound included), then ``fm.estimate`` of its triple (the stand-alone
+   bound: flux reconstruction and every estimator);
+3. the speed-ups T(1)/T(k) of each column, from the same process.
+
+The first solve of the process (the most threads, geometric) is the one a
+user meets after the warm-up; it is recorded as such.  A per-thread count row
+has the seconds of every level, its Newton steps, CG iterations, multigrid
+setups and flux seconds, so that what does not scale can be named.  With
+``--profile`` the solve at the most threads is profiled once more
+(cProfile, the 25 largest self times go into the JSON).
+
+``--deadline`` (seconds from the start) skips what would not finish: a row
+is started only while its predicted time, scaled from the rows already
+done, fits.  ``--large N`` then solves one larger mesh once at the most
+threads, with peak memory per vertex.
+
+    python -m bench.manycore [--quick] [--sizes 2048] [--threads 16 8 4 2 1]
+                             [--scenes default manufactured]
+    python -m bench.manycore --sizes 2048 --threads 16 8 4 2 1 --deadline 420 --profile
+"""
+
+import cProfile
+import io
+import pstats
+import time
+
+from bench._common import current_rss_mb, finish, parse, parser, peak_rss_mb, poisson_unit, progress
+
+QUICK_SIZES = [64]
+FULL_SIZES = [2048]
+MULTIGRIDS = ("geometric", "algebraic")
+
+
+SCENES = ("default", "manufactured")
+
+
+def _scene(mesh, which="default"):
+    import fastmem as fm
+
+    if which == "manufactured":
+        from fastmem.problems import Manufactured
+
+        return Manufactured().scene(mesh)
+    return fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+
+
+def _levels(result):
+    keys = ("n_vertices", "newton", "inner", "seconds", "amg_setups", "amg_setup_seconds")
+    keys += ("flux_evaluations", "flux_seconds")
+    return [{k: lv.get(k) for k in keys} for lv in result.parameters["solver"]["levels"]]
+
+
+def _one(mesh, multigrid, which):
+    import fastmem as fm
+
+    t0 = time.perf_counter()
+    r = fm.solve(_scene(mesh, which), method="inexact", multigrid=multigrid)
+    solve_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    est = fm.estimate(_scene(mesh, which), r.u1, r.u2, r.lam)
+    estimate_s = time.perf_counter() - t0
+    return {
+        "solve_s": solve_s,
+        "estimate_s": estimate_s,
+        "eta": float(r.eta),
+        "eta_estimate": float(est.eta),
+        "n_newton": int(r.n_newton),
+        "timings": dict(r.timings),
+        "levels": _levels(r),
+    }
+
+
+def _profile(mesh, multigrid, which, top=25):
+    import fastmem as fm
+
+    pr = cProfile.Profile()
+    pr.enable()
+    fm.solve(_scene(mesh, which), method="inexact", multigrid=multigrid)
+    pr.disable()
+    out = io.StringIO()
+    pstats.Stats(pr, stream=out).sort_stats("tottime").print_stats(top)
+    text = out.getvalue()
+    return text[text.find("ncalls") :]
+
+
+def run(sizes, threads, multigrids, deadline, profile, large, t_start, scenes=("default",)):
+    import numba
+
+    import fastmem as fm
+
+    rows = []
+    fm.warm_up()
+    for n in sizes:
+        mesh = fm.Mesh.square(n)
+        fm.set_threads(numba=max(threads))
+        pu = poisson_unit(mesh, repeat=1)
+        progress(f"n={n}: {mesh.n_vertices} vertices, Poisson unit {pu['seconds']:.2f} s")
+        first = True
+        done = {}  # (threads, multigrid, scene) -> solve + estimate seconds
+        for t in sorted(threads, reverse=True):
+            fm.set_threads(numba=t)
+            for which, mg in [(w, m) for w in scenes for m in multigrids]:
+                # predicted from the same multigrid at more threads, as if nothing scaled
+                known = [v for (k, m, w), v in done.items() if m == mg and w == which]
+                guess = max(known) * max(threads) / t if known else 0.0
+                guess = min(guess, 4.0 * max(known)) if known else 0.0
+                if deadline and time.perf_counter() - t_start + guess > deadline:
+                    progress(f"n={n} threads={t} {which} {mg}: skipped (deadline)")
+                    continue
+                row = {"n": n, "vertices": mesh.n_vertices, "threads": t, "multigrid": mg}
+                row["scene"] = which
+                row.update(_one(mesh, mg, which))
+                row["first_solve_in_process"] = first
+                row["poisson_s"] = pu["seconds"]
+                row["solve_pu"] = row["solve_s"] / pu["seconds"]
+                row["peak_rss_mb"] = peak_rss_mb()
+                row["rss_mb"] = current_rss_mb()
+                row["numba_threads"] = numba.get_num_threads()
+                first = False
+                done[(t, mg, which)] = row["solve_s"] + row["estimate_s"]
+                rows.append(row)
+                progress(
+                    f"n={n} threads={t:2d} {which:12s} {mg:9s}: solve {row['solve_s']:.2f} s "
+                    f"({row['solve_pu']:.2f} PU), estimate {row['estimate_s']:.2f} s, "
+                    f"eta {row['eta']:.4e}, Newton {row['n_newton']}"
+                )
+        for which, mg in [(w, m) for w in scenes for m in multigrids]:
+            base = {
+                r["threads"]: r
+                for r in rows
+                if r["n"] == n and r["multigrid"] == mg and r.get("scene") == which
+            }
+            if 1 in base:
+                for r in base.values():
+                    r["solve_speedup"] = base[1]["solve_s"] / r["solve_s"]
+                    r["estimate_speedup"] = base[1]["estimate_s"] / r["estimate_s"]
+        if profile and not (deadline and time.perf_counter() - t_start > 0.8 * deadline):
+            fm.set_threads(numba=max(threads))
+            rows.append(
+                {
+                    "n": n,
+                    "threads": max(threads),
+                    "multigrid": multigrids[0],
+                    "scene": scenes[0],
+                    "profile": _profile(mesh, multigrids[0], scenes[0]),
+                }
+            )
+        del mesh
+    if large:
+        fm.set_threads(numba=max(threads))
+        left = (deadline or 1e9) - (time.perf_counter() - t_start)
+        progress(f"n={large}: {left:.0f} s left")
+        t0 = time.perf_counter()
+        mesh = fm.Mesh.square(large)
+        mesh_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        r = fm.solve(_scene(mesh), method="inexact", multigrid=multigrids[0])
+        solve_s = time.perf_counter() - t0
+        rows.append(
+            {
+                "n": large,
+                "vertices": mesh.n_vertices,
+                "threads": max(threads),
+                "multigrid": multigrids[0],
+                "large": True,
+                "mesh_s": mesh_s,
+                "solve_s": solve_s,
+                "eta": float(r.eta),
+                "levels": _levels(r),
+                "peak_rss_mb": peak_rss_mb(),
+                "bytes_per_vertex": peak_rss_mb() * 2**20 / mesh.n_vertices,
+            }
+        )
+        progress(f"n={large}: mesh {mesh_s:.1f} s, solve {solve_s:.1f} s, eta {r.eta:.4e}")
+    return rows
+
+
+def main(argv=None):
+    import numba
+
+    t_start = time.perf_counter()
+    p = parser(__doc__, repeat=1)
+    p.add_argument("--threads", type=int, nargs="*", default=None, help="default: 1, 2 and all")
+    p.add_argument("--multigrid", nargs="*", default=list(MULTIGRIDS), choices=MULTIGRIDS)
+    p.add_argument("--scenes", nargs="*", default=["default"], choices=SCENES)
+    p.add_argument("--deadline", type=float, default=None, help="seconds; later rows skipped")
+    p.add_argument("--profile", action="store_true", help="cProfile one solve at the most threads")
+    p.add_argument("--large", type=int, default=None, help="one larger n at the most threads")
+    args = parse(p, argv)
+    sizes = args.sizes or (QUICK_SIZES if args.quick else FULL_SIZES)
+    most = numba.config.NUMBA_NUM_THREADS
+    threads = sorted({t for t in (args.threads or [1, 2, most]) if 1 <= t <= most})
+    payload = {
+        "parameters": {
+            "sizes": sizes,
+            "threads": threads,
+            "multigrids": list(args.multigrid),
+            "scenes": list(args.scenes),
+            "deadline": args.deadline,
+            "large": args.large,
+            "quick": args.quick,
+            "numba_num_threads": most,
+            "schedule": "one process; thread counts from the most to the fewest; per count "
+            "each multigrid: one solve (inexact, nested, the bound) and one fm.estimate",
+        },
+        "rows": run(
+            sizes,
+            threads,
+            list(args.multigrid),
+            args.deadline,
+            args.profile,
+            args.large,
+            t_start,
+            tuple(args.scenes),
+        ),
+    }
+    finish("manycore", payload, args.quick)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,471 @@
+"""Geometric multigrid on nested hierarchies, in the kernel threads (issue 33).
+
+Nested iteration solves a problem on a chain of meshes, each the refinement
+of the one before (or, for meshes that came from elsewhere, an auxiliary
+coarse mesh).  The P1 interpolation between consecutive meshes is known from
+the chain (:func:`fastmem.solver.nested.interpolation_matrix`); a multigrid
+hierarchy built on it needs no aggregation, no strength graph and no
+smoothed prolongators, so its setup is only the coarse operators:
+
+- the Galerkin products ``A_(l+1) = P_l^T A_l P_l``, computed coarse row by
+  coarse row in parallel row chunks (:func:`galerkin`,
+  :func:`fastmem.kernels.mg.galerkin_rows`); for the Laplacian of nested P1
+  meshes they are the coarser meshes' own Laplacians;
+- for the gap system of a Newton-min step (the Laplacian with the active
+  rows and columns replaced by the diagonal), the *truncated* first
+  interpolation ``K P`` (``K`` keeps the inactive vertices): the coarse
+  spaces vanish on the active set, as the gap does, and a coarse unknown
+  that the mask cuts off entirely gets a unit diagonal;
+- the coarsest level (at most :data:`COARSE_DENSE` unknowns) is factored
+  densely by Cholesky; a larger one (a chain that stopped early) gets one
+  smoothed-aggregation V-cycle of pyamg.
+
+The cycle is a V(1,1): a forward hybrid Gauss-Seidel sweep, the coarse
+correction, a backward sweep.  The sweeps are those of
+:class:`fastmem.linalg.amg.HybridGaussSeidel` (Gauss-Seidel in fixed row
+blocks, Jacobi across them, blocks independent of the thread count), so the
+cycle is a symmetric positive definite preconditioner and gives the same
+numbers with any number of threads.  Residuals, restrictions and
+prolongations are row-chunk kernels (:mod:`fastmem.kernels.mg`).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sp
+
+from ..kernels import pool as _par
+from ..kernels.mg import MAX_ROW, galerkin_rows, galerkin_values, prolong_add_range, residual_range
+from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
+from .amg import amg_preconditioner, hybrid_blocks
+from .sparse import _unsigned, threaded
+
+__all__ = ["COARSE_DENSE", "NestedChain", "NestedMG", "galerkin", "precompile"]
+
+#: The coarsest level is factored densely (Cholesky) up to this many unknowns.
+COARSE_DENSE = 2000
+
+
+def _canonical(a) -> sp.csr_matrix:
+    """Return ``a`` as a sorted float64 CSR matrix with int32 indices (int64 when it must)."""
+    a = a if sp.isspmatrix_csr(a) else sp.csr_matrix(a)
+    if not a.has_sorted_indices:
+        a = a.copy()
+        a.sort_indices()
+    if a.dtype != np.float64:
+        a = a.astype(np.float64)
+    small = a.nnz < 2**31 - 1 and max(a.shape) < 2**31 - 1
+    dt = np.int32 if small else np.int64
+    if a.indptr.dtype != dt or a.indices.dtype != dt:
+        a = sp.csr_matrix(
+            (a.data, a.indices.astype(dt), a.indptr.astype(dt)), shape=a.shape, copy=False
+        )
+        a.has_sorted_indices = True
+    return a
+
+
+def galerkin(a, p, r=None, keep=None, drop=True) -> sp.csr_matrix:
+    """Return ``P^T K A K P`` (CSR, sorted), computed in parallel row chunks.
+
+    ``a``: n x n CSR; ``p``: n x m CSR; ``r``: ``p.T`` as CSR (computed when not
+    given); ``keep``: bool (n,), the diagonal of ``K`` (all True when None).  A
+    coarse row that ``K`` cuts off entirely gets a unit diagonal.  ``drop``:
+    entries that cancel exactly are not stored (with ``drop=False`` the result
+    holds the whole pattern of the product, a pattern every masked product
+    fits in).  Falls back to scipy's products (serial) when a row would exceed
+    :data:`fastmem.kernels.mg.MAX_ROW` entries.
+    """
+    a, p = _canonical(a), _canonical(p)
+    r = _canonical(p.T.tocsr() if r is None else r)
+    n, m = p.shape
+    if a.shape != (n, n) or r.shape != (m, n):
+        raise ValueError(f"galerkin: shapes {a.shape}, {p.shape}, {r.shape} do not match")
+    keep_arr = np.ones(n, dtype=np.bool_) if keep is None else np.ascontiguousarray(keep, np.bool_)
+    arrays = []
+    for mat in (r, a, p):
+        arrays += [_unsigned(mat.indptr), _unsigned(mat.indices), mat.data]
+    counts = np.empty(m, dtype=np.int64)
+    dummy_i = np.empty(0, dtype=np.int64)
+    dummy_d = np.empty(0, dtype=np.float64)
+    _par.parallel_for(galerkin_rows, m, *arrays, keep_arr, False, drop, counts, dummy_i, dummy_d)
+    if m and counts.min() < 0:  # a row too long for the kernel's buffer: scipy's products
+        k = sp.diags(keep_arr.astype(np.float64))
+        out = (r @ (k @ a @ k) @ p).tocsr()
+        out.sort_indices()
+        if drop:
+            out.eliminate_zeros()
+        diag = out.diagonal()
+        empty = np.diff(out.indptr) == 0
+        if empty.any():
+            out = (out + sp.diags(np.where(empty & (diag == 0.0), 1.0, 0.0))).tocsr()
+        return _canonical(out)
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    nnz = int(indptr[-1])
+    dt = np.int32 if nnz < 2**31 - 1 and m < 2**31 - 1 else np.int64
+    idx = np.empty(nnz, dtype=np.int64)
+    data = np.empty(nnz, dtype=np.float64)
+    starts = indptr[:-1].copy()
+    _par.parallel_for(galerkin_rows, m, *arrays, keep_arr, True, drop, starts, idx, data)
+    out = sp.csr_matrix((data, idx.astype(dt), indptr.astype(dt)), shape=(m, m), copy=False)
+    out.has_sorted_indices = True
+    return out
+
+
+def galerkin_into(c, a, p, r, keep, rows=None) -> None:
+    """Recompute rows of ``c = P^T K A K P`` in place, on ``c``'s pattern.
+
+    ``c``'s pattern must hold every entry of the product (the unmasked
+    product's, cancellations kept: :func:`galerkin` with ``drop=False``).
+    ``rows``: the coarse rows to recompute (all when None); the others keep
+    their values.  Each row is summed as :func:`galerkin` sums it, so
+    recomputing the rows that changed gives the matrix a full recomputation
+    gives, bit for bit.
+    """
+    m = c.shape[0]
+    if m and int(np.diff(c.indptr).max()) > MAX_ROW:
+        raise ValueError(f"galerkin_into: a coarse row has more than {MAX_ROW} entries")
+    rows = np.arange(m, dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
+    arrays = []
+    for mat in (r, a, p):
+        arrays += [_unsigned(mat.indptr), _unsigned(mat.indices), mat.data]
+    keep_arr = np.ascontiguousarray(keep, np.bool_)
+    _par.parallel_for(
+        galerkin_values,
+        rows.size,
+        rows,
+        *arrays,
+        keep_arr,
+        _unsigned(c.indptr),
+        _unsigned(c.indices),
+        c.data,
+    )
+
+
+class NestedChain:
+    """The interior-to-interior interpolations of a nested chain, finest first.
+
+    ``prolongations[0]`` maps the second finest level to the finest, and so on
+    down.  Their transposes (the restrictions) are formed once, on first use,
+    and shared by every hierarchy built on the chain.
+    """
+
+    def __init__(self, prolongations):
+        self.p = [_canonical(q) for q in prolongations]
+        for fine, coarse in zip(self.p, self.p[1:], strict=False):
+            if fine.shape[1] != coarse.shape[0]:
+                raise ValueError(
+                    f"nested chain: a {fine.shape} interpolation follows a {coarse.shape} one"
+                )
+        self._r = [None] * len(self.p)
+        self._full = None  # (base, the unmasked coarse operators, cancellations kept)
+
+    def full_operators(self, base) -> list:
+        """Return the coarse operators of ``base`` with every entry of their pattern stored.
+
+        ``P_0^T base P_0``, then each next one from the one before; cached for
+        ``base`` (the same object) until :meth:`drop_cache`.  Their patterns
+        hold every masked product (:meth:`NestedMG.build` for a gap system).
+        """
+        if self._full is None or self._full[0] is not base:
+            ops, cur = [], _canonical(base)
+            for lev in range(len(self.p)):
+                cur = galerkin(cur, self.p[lev], self.r(lev), drop=False)
+                ops.append(cur)
+            self._full = (base, ops)
+        return self._full[1]
+
+    def drop_cache(self) -> None:
+        """Free the cached coarse operators (:meth:`full_operators` forms them again)."""
+        self._full = None
+
+    def __len__(self):
+        return len(self.p)
+
+    def r(self, level: int) -> sp.csr_matrix:
+        """Return the restriction ``P_level^T`` (CSR)."""
+        if self._r[level] is None:
+            self._r[level] = _canonical(self.p[level].T.tocsr())
+        return self._r[level]
+
+    @property
+    def n_fine(self) -> int:
+        """Unknowns of the finest level."""
+        return self.p[0].shape[0] if self.p else 0
+
+
+class _Level:
+    """One level of a cycle: its operator (kernel arrays) and its sweep's blocks."""
+
+    def __init__(self, a):
+        self.a = a
+        self.n = a.shape[0]
+        self.arrays = (_unsigned(a.indptr), _unsigned(a.indices), a.data)
+        nb = hybrid_blocks(self.n)
+        if nb and not cross_block_dominant(*self.arrays, nb):
+            nb = 0  # the hybrid sweep may not converge on this operator: plain Gauss-Seidel
+        self.blocks = [(self.n * k // nb, self.n * (k + 1) // nb) for k in range(nb)] or [
+            (0, self.n)
+        ]
+        self.old = None
+
+    def sweep(self, x, b, forward):
+        """One hybrid Gauss-Seidel sweep in place (plain Gauss-Seidel with one block)."""
+        indptr, indices, data = self.arrays
+        if len(self.blocks) == 1:
+            gs_hybrid_range(0, self.n, forward, indptr, indices, data, x, x, b)
+            return
+        if self.old is None:
+            self.old = np.empty(self.n)
+        old = self.old
+        np.copyto(old, x)
+
+        def one(lo, hi):
+            gs_hybrid_range(lo, hi, forward, indptr, indices, data, x, old, b)
+
+        _par.run_pieces(one, self.blocks, _par.n_threads())
+
+    def residual(self, x, b):
+        r = np.empty(self.n)
+        _par.parallel_for(residual_range, self.n, *self.arrays, x, b, r)
+        return r
+
+
+class NestedMG:
+    """V(1,1) geometric multigrid over a :class:`NestedChain`, an SPD preconditioner.
+
+    Parameters
+    ----------
+    matrix : sparse matrix
+        The finest operator (the CG's matrix).
+    chain : NestedChain or list of sparse matrices
+        Interpolations onto the finest level and below it, finest first.
+    stats : dict, optional
+        Per-level counters; a build adds to ``{key}_setups`` and
+        ``{key}_setup_seconds`` (``key`` "amg" by default, as the AMG setups).
+    base, active : optional
+        For a gap system: ``base`` is the unmasked operator (the interior
+        Laplacian) and ``active`` the active set; the first coarse operator is
+        then ``P^T K base K P`` with ``K = diag(~active)``.
+    options : dict, optional
+        AMG options, for the coarsest level when it is too large to factor.
+
+    The same interface as :class:`fastmem.linalg.amg.LazyAMG`: built on first
+    use, :meth:`release` frees the coarse levels (and with ``final`` the chain).
+    """
+
+    #: a gap system's hierarchy moves to a new active set by :meth:`update`
+    can_update = True
+
+    def __init__(self, matrix, chain, stats=None, base=None, active=None, options=None):
+        self.matrix = matrix
+        self.chain = chain if isinstance(chain, NestedChain) else NestedChain(chain)
+        if self.chain.n_fine != matrix.shape[0]:
+            raise ValueError(
+                f"nested multigrid: matrix of size {matrix.shape[0]}, chain for {self.chain.n_fine}"
+            )
+        self.stats = {} if stats is None else stats
+        self.base = base
+        self.active = None if active is None else np.asarray(active, dtype=bool)
+        self.options = options
+        self.levels = None
+        self._ops = self._base = None
+        self.setup_seconds = 0.0
+        self.n = matrix.shape[0]
+
+    @property
+    def built(self) -> bool:
+        """True while a hierarchy exists."""
+        return self.levels is not None
+
+    def build(self, key: str = "amg") -> None:
+        """Form the coarse operators and factor the coarsest one."""
+        t0 = time.perf_counter()
+        chain = self.chain
+        fine = _canonical(self.matrix)
+        ops = [fine]
+        self._keep = np.ones(self.n, dtype=np.bool_)
+        if len(chain):
+            base = _canonical(self.matrix if self.base is None else self.base)
+            full = chain.full_operators(self.matrix if self.base is None else self.base)
+            if self.active is None:  # the unmasked hierarchy: cancellations dropped
+                for op in full:
+                    c = op.copy()
+                    c.eliminate_zeros()
+                    ops.append(c)
+            else:  # the gap system's: values of the truncated products on the full patterns
+                self._keep = ~self.active
+                self._base = base
+                for lev, op in enumerate(full):
+                    c = sp.csr_matrix(
+                        (np.empty_like(op.data), op.indices, op.indptr), shape=op.shape, copy=False
+                    )
+                    c.has_sorted_indices = True
+                    keep = self._keep if lev == 0 else self._ones_of(lev)
+                    galerkin_into(c, ops[-1] if lev else base, chain.p[lev], chain.r(lev), keep)
+                    ops.append(c)
+        self._ops = ops
+        self.levels = [_Level(a) for a in ops[:-1]]
+        self._transfer = [
+            (
+                _unsigned(chain.p[k].indptr),
+                _unsigned(chain.p[k].indices),
+                chain.p[k].data,
+                _unsigned(chain.r(k).indptr),
+                _unsigned(chain.r(k).indices),
+                chain.r(k).data,
+            )
+            for k in range(len(chain))
+        ]
+        self._ones = [self._ones_of(k) for k in range(1, len(chain))]
+        self._factor_coarsest()
+        self._book(key, time.perf_counter() - t0)
+
+    def _ones_of(self, lev):
+        return np.ones(self.chain.p[lev].shape[0], dtype=np.bool_)
+
+    def _book(self, key, seconds):
+        self.setup_seconds = seconds
+        self.stats[f"{key}_setups"] = self.stats.get(f"{key}_setups", 0) + 1
+        self.stats[f"{key}_setup_seconds"] = self.stats.get(f"{key}_setup_seconds", 0.0) + seconds
+
+    def _factor_coarsest(self):
+        coarse = self._ops[-1]
+        self._factor = self._amg = self._pinv = None
+        if coarse.shape[0] <= COARSE_DENSE:
+            dense = coarse.toarray()
+            try:
+                self._factor = scipy.linalg.cho_factor(dense, check_finite=False)
+            except np.linalg.LinAlgError:
+                self._pinv = scipy.linalg.pinv(dense)
+        else:
+            self._amg = amg_preconditioner(threaded(coarse), dict(self.options or {}))
+
+    def update(self, matrix, active) -> float:
+        """Move a gap system's hierarchy to a new active set; returns the seconds taken.
+
+        Only the coarse rows near the vertices whose activity changed are
+        recomputed, level by level (a row of ``P^T K A K P`` changes only if a
+        fine vertex of its support or a neighbour of one changed); the others
+        are those a full build gives, so the result is the hierarchy
+        :meth:`build` makes for ``active``, bit for bit.  O(size of the change)
+        per level, plus the coarsest factorisation.
+        """
+        if self.active is None:
+            raise ValueError("update applies to a gap system's hierarchy (built with active)")
+        t0 = time.perf_counter()
+        active = np.asarray(active, dtype=bool)
+        self.matrix = matrix
+        if self.levels is None or not len(self.chain):
+            self.active = active
+            return time.perf_counter() - t0
+        keep = ~active
+        flipped = np.flatnonzero(keep != self._keep)
+        self.active = active
+        self._keep = keep
+        self._ops[0] = fine = _canonical(matrix)
+        self.levels[0] = _Level(fine)
+        if flipped.size:
+            chain, ops = self.chain, self._ops
+            near = np.union1d(flipped, self._base[flipped].indices)
+            rows = np.unique(chain.p[0][near].indices)
+            galerkin_into(ops[1], self._base, chain.p[0], chain.r(0), keep, rows)
+            for lev in range(1, len(chain)):
+                near = np.union1d(rows, ops[lev][rows].indices)
+                rows = np.unique(chain.p[lev][near].indices)
+                galerkin_into(
+                    ops[lev + 1], ops[lev], chain.p[lev], chain.r(lev), self._ones_of(lev), rows
+                )
+            for lev in range(1, len(self.levels)):  # the sweeps' convergence test, again
+                self.levels[lev] = _Level(ops[lev])
+            self._factor_coarsest()
+        seconds = time.perf_counter() - t0
+        self.stats["amg_updates"] = self.stats.get("amg_updates", 0) + 1
+        self.stats["amg_update_seconds"] = self.stats.get("amg_update_seconds", 0.0) + seconds
+        return seconds
+
+    @property
+    def n_levels(self) -> int:
+        """Levels of the hierarchy (the finest and the coarsest included)."""
+        return len(self.chain) + 1
+
+    def operators(self) -> list:
+        """Return the hierarchy's operators, finest first, coarsest included (built if needed)."""
+        if self.levels is None:
+            self.build()
+        return list(self._ops)
+
+    def _coarse_solve(self, b):
+        if self._amg is not None:
+            return self._amg(b)
+        if self._pinv is not None:
+            return self._pinv @ b
+        return scipy.linalg.cho_solve(self._factor, b, check_finite=False)
+
+    def _cycle(self, lev, b):
+        if lev == len(self.levels):
+            return self._coarse_solve(b)
+        level = self.levels[lev]
+        x = np.zeros(level.n)
+        level.sweep(x, b, True)
+        r = level.residual(x, b)
+        pp, pi, pd, rp, ri, rd = self._transfer[lev]
+        m = self.chain.p[lev].shape[1]
+        bc = np.empty(m)
+        _par.parallel_for(csr_matvec_range, m, rp, ri, rd, r, bc)
+        del r
+        xc = self._cycle(lev + 1, bc)
+        keep = self._keep if lev == 0 else self._ones[lev - 1]
+        _par.parallel_for(prolong_add_range, level.n, pp, pi, pd, keep, xc, x)
+        level.sweep(x, b, False)
+        return x
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        """One V(1,1) cycle from a zero initial guess: ``z ~ A^-1 r``."""
+        if self.levels is None:
+            self.build()
+        b = np.ascontiguousarray(r, dtype=np.float64)
+        if not len(self.chain):
+            return self._coarse_solve(b)
+        return self._cycle(0, b)
+
+    def release(self, final: bool = False):
+        """Free the hierarchy (a later call builds it again); ``final``: the chain too."""
+        self.levels = self._transfer = self._factor = self._amg = self._pinv = None
+        self._ops = self._base = None
+        if final:
+            self.chain = NestedChain([])
+
+
+def precompile() -> None:
+    """Compile (or load) the kernels of :class:`NestedMG`, with the argument types of a solve.
+
+    On a 1D chain of three levels (7, 3 and 1 interior unknowns): the unmasked
+    and the masked hierarchy, an update, one cycle; :func:`fastmem.warm_up`'s
+    tiny problem is too small for nested iteration.
+    """
+
+    def laplacian(n):
+        return sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr()
+
+    def interpolation(m):  # m coarse interior unknowns -> 2m+1 fine ones
+        rows, cols, vals = [], [], []
+        for c in range(m):
+            rows += [2 * c, 2 * c + 1, 2 * c + 2]
+            cols += [c, c, c]
+            vals += [0.5, 1.0, 0.5]
+        return sp.csr_matrix((vals, (rows, cols)), shape=(2 * m + 1, m))
+
+    a = laplacian(7)
+    chain = NestedChain([interpolation(3), interpolation(1)])
+    NestedMG(a, chain)(np.ones(7))
+    active = np.zeros(7, dtype=bool)
+    active[0] = True
+    mg = NestedMG(a, chain, base=a, active=active)
+    mg.build()
+    active[6] = True
+    mg.update(a, active)
+    mg(np.ones(7))
