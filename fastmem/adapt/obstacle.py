@@ -25,6 +25,7 @@ from ..fem.obstacle import Obstacle
 from ..io.result import Estimate, ObstacleResult
 from ..mesh.refine import dorfler_mark, refine_marked
 from ..solver.obstacle import newton_min_obstacle, solve_obstacle_levels
+from .loop import ensure_growth
 
 __all__ = ["ADAPTIVITY_COLUMNS", "refine_problem", "solve_obstacle"]
 
@@ -158,6 +159,7 @@ def solve_obstacle(problem: Obstacle, options: dict, initial=None) -> ObstacleRe
 
 def _solve_to_tolerance(problem, options, initial, timings, t0):
     tol, rtol, theta = (options["adapt"][k] for k in ("tol", "rtol", "theta"))
+    min_growth = options["adapt"].get("min_growth", 1.0)
     max_vertices = options["adapt"]["max_vertices"]
     max_levels = options["adapt"]["max_levels"]
     budget = options["adapt"]["time_budget"]
@@ -204,7 +206,7 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
         }
         if est.eta <= target:
             converged, stop_reason = True, "tolerance"
-        elif problem.mesh.n_vertices * 1.3 > max_vertices:
+        elif problem.mesh.n_vertices * max(1.3, min_growth) > max_vertices:
             stop_reason = "max_vertices"
         elif budget is not None and time.perf_counter() - t0 + 1.5 * seconds > budget:
             stop_reason = "time_budget"
@@ -212,7 +214,8 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
             _append(table, row, monitor)
             break
         t2 = time.perf_counter()
-        marked = dorfler_mark(est.indicators**2, theta)
+        eta2 = est.indicators**2
+        marked = ensure_growth(problem.mesh, eta2, dorfler_mark(eta2, theta), min_growth)
         row["marked_fraction"] = float(marked.mean())
         new_mesh, refinement = refine_marked(problem.mesh, marked)
         new_problem = refine_problem(problem, new_mesh, refinement)
@@ -231,6 +234,7 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
         for k, v in table.items()
     }
     extra = {"stop_reason": stop_reason, "tol": tol, "rtol": rtol, "theta": theta}
+    extra["min_growth"] = min_growth
     level.converged = level.converged and converged
     return _result(problem, level, options, rows, timings, adaptivity, extra)
 

@@ -273,6 +273,12 @@ def _build_parser() -> argparse.ArgumentParser:
         "--theta", type=float, default=None, help="Dörfler marking fraction (default 0.5)"
     )
     a.add_argument(
+        "--min-growth",
+        type=float,
+        default=None,
+        help="least vertex growth per refinement, in [1, 2] (default 1: Dörfler's)",
+    )
+    a.add_argument(
         "--max-vertices", type=int, default=None, help="vertex limit (default 5M; exact: 1M)"
     )
     a.add_argument("--max-levels", type=int, default=None, help="mesh limit (default 100)")
@@ -363,7 +369,7 @@ class _LevelMonitor(_Table):
 
 
 def _adapt_keywords(args) -> dict:
-    keys = ("tol", "rtol", "theta", "max_vertices", "max_levels", "time_budget")
+    keys = ("tol", "rtol", "theta", "min_growth", "max_vertices", "max_levels", "time_budget")
     return {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
 
 

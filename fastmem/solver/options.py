@@ -197,6 +197,9 @@ class AdaptOptions(_Frozen):
     tol: float | None = None
     rtol: float | None = None
     theta: float = 0.5
+    #: each refinement makes at least this many times the vertices (more marked than
+    #: Dörfler's set when it falls short; :mod:`fastmem.adapt.loop`, MARK)
+    min_growth: float = 1.0
     max_vertices: int | None = None
     max_levels: int = 100
     time_budget: float | None = None
@@ -209,6 +212,14 @@ class AdaptOptions(_Frozen):
             value = _number(name, value)
             if value > 1.0:
                 raise ParameterError(f"theta must be in (0, 1], got {value!r}")
+            return value
+        if name == "min_growth":
+            value = _number(name, value)
+            if not 1.0 <= value <= 2.0:
+                raise ParameterError(
+                    f"min_growth must be in [1, 2] (1: Dörfler's mesh as it is; one round of "
+                    f"bisection at most doubles the vertices), got {value!r}"
+                )
             return value
         if name in ("max_vertices", "max_levels") and value is not None:
             return _number(name, value, integer=True)
@@ -226,6 +237,7 @@ class AdaptOptions(_Frozen):
 #: "not given" (they need ``tol`` or ``rtol``).
 _ADAPT_ONLY = {
     "theta": None,
+    "min_growth": None,
     "max_vertices": None,
     "max_levels": None,
     "time_budget": None,

@@ -123,3 +123,42 @@ def test_landing_does_not_overshoot_and_still_converges(monkeypatch):
             assert r.mesh.n_vertices <= plain.mesh.n_vertices
             assert len(table["level"]) <= len(plain.adaptivity["level"]) + 1
     assert landed >= 1
+
+
+def test_min_growth_makes_fewer_larger_meshes():
+    """Each refinement before the landing grows the mesh at least min_growth times (within
+    the top-k search's tolerance), with fewer meshes than Dörfler's own growth; the bound of
+    the returned triple still meets the tolerance."""
+    tol = 1.2e-2
+    plain = fm.solve(_default(fm.Mesh.lshape(8)), tol=tol)
+    grown = fm.solve(_default(fm.Mesh.lshape(8)), tol=tol, min_growth=1.5)
+    assert plain.parameters["adaptivity"]["min_growth"] == 1.0
+    assert grown.parameters["adaptivity"]["min_growth"] == 1.5
+    for r in (plain, grown):
+        assert r.converged
+        assert r.eta <= tol
+    n_plain = plain.adaptivity["n_vertices"]
+    n = grown.adaptivity["n_vertices"]
+    landed = {land["level"] for land in grown.parameters["adaptivity"]["landings"]}
+    ratios = [n[k + 1] / n[k] for k in range(n.size - 1) if k not in landed]
+    assert min(ratios) >= 1.5 * (1 - 2 * afem._LANDING_TOL)
+    assert min(n_plain[k + 1] / n_plain[k] for k in range(n_plain.size - 2)) < 1.45
+    assert n.size < n_plain.size
+
+
+@pytest.mark.parametrize("value", [0.5, 2.5])
+def test_min_growth_out_of_range_is_named(value):
+    with pytest.raises(fm.errors.ParameterError, match="min_growth"):
+        fm.solve(_default(fm.Mesh.lshape(8)), tol=1e-2, min_growth=value)
+    with pytest.raises(fm.errors.ParameterError, match="min_growth"):
+        fm.solve(_default(fm.Mesh.lshape(8)), min_growth=1.5)  # needs tol
+
+
+def test_min_growth_in_the_obstacle_loop():
+    from fastmem.problems.obstacles import ball
+
+    r = fm.solve(ball(8), tol=6e-2, min_growth=1.5)
+    assert r.converged
+    n = r.adaptivity["n_vertices"]
+    assert n.size >= 3
+    assert min(n[1:] / n[:-1]) >= 1.5 * (1 - 2 * afem._LANDING_TOL)
