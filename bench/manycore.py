@@ -4,11 +4,12 @@ Issue 33's many-core check.  The default scene (docs/method.md §8; with
 ``--scenes`` also the manufactured one, :class:`fastmem.problems.Manufactured`)
 on the structured n x n square, in one process:
 
-1. ``fm.warm_up()`` (the kernels compiled or loaded), the mesh built, the
+1. ``fm.warm_up(large=True)`` (the kernels compiled or loaded), the mesh built, the
    Poisson unit measured (:func:`bench._common.poisson_unit`, all threads);
 2. for each thread count, from the most to the fewest (``fm.set_threads``),
    and each multigrid (``multigrid="geometric"``, the nested-hierarchy
-   multigrid, and ``"algebraic"``, pyamg as before issue 33):
+   multigrid, which the default ``"auto"`` takes on these levels, and
+   ``"algebraic"``, pyamg as before issue 33):
    ``fm.solve(scene, method="inexact")`` on a fresh scene (nested iteration,
    the bound included), then ``fm.estimate`` of its triple (the stand-alone
    bound: flux reconstruction and every estimator);
@@ -101,7 +102,7 @@ def run(sizes, threads, multigrids, deadline, profile, large, t_start, scenes=("
     import fastmem as fm
 
     rows = []
-    fm.warm_up()
+    fm.warm_up(large=True)
     for n in sizes:
         mesh = fm.Mesh.square(n)
         fm.set_threads(numba=max(threads))

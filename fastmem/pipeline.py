@@ -57,7 +57,7 @@ def solve(
     check_every: int = 1,
     amg_options: dict | None = None,
     amg_reuse: float = 0.05,
-    multigrid: str = "geometric",
+    multigrid: str = "auto",
     nested: bool | str = "auto",
     full_history: bool = False,
     keep_iterates: bool = False,
@@ -124,9 +124,12 @@ def solve(
         updated to every new active set (Galerkin products,
         :meth:`fastmem.linalg.amg.AMGPreconditioner.update`).  0: a new setup whenever
         the active set changed.
-    multigrid : {"geometric", "algebraic"}
+    multigrid : {"auto", "geometric", "algebraic"}
         Preconditioner of the decoupled CGs on the levels of nested iteration
-        (``"inexact"`` and ``"exact-amg"``).  ``"geometric"``: V(1,1) cycles over the
+        (``"inexact"`` and ``"exact-amg"``).  ``"auto"`` (default): ``"geometric"``
+        on the levels with at least 32,768 interior vertices, ``"algebraic"``
+        below (there both are as fast, and a small solve compiles no multigrid
+        kernel).  ``"geometric"``: V(1,1) cycles over the
         chain of nested meshes, whose interpolations are known, with Galerkin
         coarse operators formed in the kernel threads and hybrid Gauss-Seidel
         sweeps (:class:`fastmem.linalg.gmg.NestedMG`; the gap system's coarse

@@ -338,10 +338,16 @@ def _precompile_masked() -> None:
     masked_gap(a, np.zeros(a.shape[0], dtype=bool))
 
 
-def _precompile_cycles() -> None:
-    """Compile the multigrid cycles' kernels (hybrid sweep, threaded products, nested MG)."""
+def _precompile_cycles(large: bool) -> None:
+    """Compile the multigrid cycles' kernels (hybrid sweep, threaded products; nested MG).
+
+    The geometric multigrid's only with ``large``: ``multigrid="auto"`` takes it on
+    levels of :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices and
+    more (1.4 s of a cold first run otherwise spent on kernels a small solve never calls).
+    """
     precompile()
-    gmg.precompile()
+    if large:
+        gmg.precompile()
 
 
 def _precompile_locate() -> None:
@@ -382,7 +388,8 @@ def warm_up(
     large : bool
         Whether its mesh has at least :data:`fastmem.linalg.sparse.THREADED_ROWS`
         vertices: the active-set matrices are then built by the threaded kernels
-        of :mod:`fastmem.kernels.masked`, which the tiny solves do not reach.
+        of :mod:`fastmem.kernels.masked`, and nested iteration takes the geometric
+        multigrid (:mod:`fastmem.kernels.mg`), which the tiny solves do not reach.
 
     Returns
     -------
@@ -413,7 +420,7 @@ def warm_up(
         _precompile_rows()
         if unstructured:
             _precompile_locate()
-    _precompile_cycles()  # (with or without a helper: the tiny solve does not reach them)
+    _precompile_cycles(large)  # (with or without a helper: the tiny solve does not reach them)
     if large:
         _precompile_masked()
     if adaptive:

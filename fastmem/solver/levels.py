@@ -24,6 +24,7 @@ from ..estimators.bound import evaluate
 from ..fem.loaddata import expect_estimates
 from ..io.result import Result
 from ..linalg.gmg import NestedChain
+from ..linalg.sparse import THREADED_ROWS
 from .history import history_arrays, new_history
 from .nested import coarse_scenes, interpolation_matrix, prolong_triple
 from .newton import newton_min
@@ -48,6 +49,12 @@ AUXILIARY = True
 #: cycle over the coarser level (:class:`fastmem.linalg.amg.TwoGridLaplacian`) instead of an
 #: AMG setup of their own.
 TWO_GRID = True
+
+#: ``multigrid="auto"``: the geometric multigrid on the levels with at least this many
+#: interior vertices (those whose products run in the kernel threads), pyamg below: a
+#: default ``fastmem run`` (n = 128) then compiles no multigrid kernel (1.4 s of its first
+#: run), and below it the two are equally fast.
+GEOMETRIC_MIN_UNKNOWNS = THREADED_ROWS
 
 
 def _two_grid(options, scene) -> bool:
@@ -93,7 +100,7 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
     eta_disc predicted for ``scene`` (used like the prediction from a coarser level).
     """
     levels = _chain(scene, options, init, timings)
-    geometric = options.inner.multigrid == "geometric"
+    multigrid = options.inner.multigrid
     transfers = []  # interior interpolations of the chain so far, finest first
     rows = new_history()
     infos, iterates = [], []
@@ -102,24 +109,27 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
     for lev, sc in enumerate(levels):
         t0 = time.perf_counter()
         hint, slack = (disc_hint if lev == 0 else None), 1.0
-        prolongation = None
+        prolongation, used = None, None
         if lev > 0:
             coarse = levels[lev - 1]
             mat = interpolation_matrix(coarse.mesh, sc.mesh)
             triple = prolong_triple(sc, coarse, triple, mat)
             if _two_grid(options, sc):
                 ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
-                if geometric:
-                    # the decoupled CGs' geometric multigrid over the whole chain
-                    # (fastmem.linalg.gmg.NestedMG): this level's interpolation joins
-                    # those of the coarser levels
+                if multigrid != "algebraic":
+                    # this level's interpolation joins those of the coarser levels
                     transfers.insert(0, mat[ii][:, ic].tocsr())
-                    prolongation = [NestedChain(transfers)]
+                if multigrid == "geometric" or (
+                    multigrid == "auto" and ii.size >= GEOMETRIC_MIN_UNKNOWNS
+                ):
+                    # the decoupled CGs' geometric multigrid over the whole chain
+                    # (fastmem.linalg.gmg.NestedMG)
+                    prolongation, used = [NestedChain(transfers)], "geometric"
                 else:
                     # the decoupled CG's two-grid cycle for s (fastmem.linalg.amg.TwoGridLaplacian),
                     # handed over as a list that newton_min empties: the step's two-grid
                     # cycle is then its only owner and can free it (TwoGridLaplacian.release)
-                    prolongation = [mat[ii][:, ic].tocsr()]
+                    prolongation, used = [mat[ii][:, ic].tocsr()], "two-grid"
             del mat, coarse
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio
@@ -160,6 +170,9 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             "inner": out.inner,
             "converged": out.converged,
             "seconds": time.perf_counter() - t0,
+            # the decoupled CGs' preconditioner from the chain: "geometric" (NestedMG),
+            # "two-grid" (TwoGridLaplacian for s) or None (pyamg's setups only)
+            "multigrid": used,
             **out.stats,
         }
         infos.append(info)

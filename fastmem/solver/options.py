@@ -52,7 +52,7 @@ METHODS = ("inexact", "exact-amg", "exact")
 #: Linear-step formulations (docs/method.md §3.2 and 3.3).
 PATHS = ("auto", "general", "decoupled")
 #: Multigrid preconditioners of the CG steps (``multigrid`` of :func:`fastmem.solve`).
-MULTIGRIDS = ("geometric", "algebraic")
+MULTIGRIDS = ("auto", "geometric", "algebraic")
 
 #: Default vertex limit of the adaptive loop (about 10M triangles; ~6 GB at the
 #: measured 1.1-1.3 KB per vertex of a solve with the bound).
@@ -141,8 +141,10 @@ class InnerOptions(_Frozen):
     amg_options: MappingProxyType = field(default=None)
     #: "geometric": on the levels of nested iteration the decoupled CGs take the
     #: geometric multigrid of the chain (:class:`fastmem.linalg.gmg.NestedMG`);
-    #: "algebraic": pyamg's smoothed aggregation everywhere (the two-grid cycle for s).
-    multigrid: str = "geometric"
+    #: "algebraic": pyamg's smoothed aggregation everywhere (the two-grid cycle for s);
+    #: "auto": geometric on levels with at least
+    #: :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices.
+    multigrid: str = "auto"
     #: The memory limit of :func:`fastmem.solve` (None, False or bytes, as there): the
     #: memory the inexact step's spilling decision (:func:`fastmem.solver.inexact.memory_pressure`)
     #: measures its estimate against, like the guard before the solve.

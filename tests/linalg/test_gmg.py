@@ -236,18 +236,20 @@ def test_bad_multigrid_option_is_named():
 
 
 def test_warm_up_compiles_the_nested_multigrid():
-    """After fm.warm_up() a nested solve with the geometric multigrid compiles nothing."""
+    """After fm.warm_up(large=True) a nested solve with the geometric multigrid compiles
+    nothing; multigrid="auto" takes it on the large level only."""
     import subprocess
     import sys
 
     script = (
         "import fastmem as fm\n"
         "from fastmem.cli import warmup\n"
-        "fm.warm_up('inexact')\n"
+        "fm.warm_up('inexact', large=True)\n"
         "ds = warmup._dispatchers()\n"
         "before = {d: sum(d.stats.cache_misses.values()) for d in ds}\n"
-        "r = fm.solve(fm.Scene(fm.Mesh.square(128), mu=(1, 1), f=(-1, 1), g=0.1))\n"
-        "assert r.parameters['solver']['multigrid'] == 'geometric'\n"
+        "r = fm.solve(fm.Scene(fm.Mesh.square(256), mu=(1, 1), f=(-1, 1), g=0.1))\n"
+        "used = [lv['multigrid'] for lv in r.parameters['solver']['levels']]\n"
+        "assert used[-1] == 'geometric' and used[-2] == 'two-grid', used\n"
         "print([d.__name__ for d in ds if sum(d.stats.cache_misses.values()) != before[d]])\n"
     )
     res = subprocess.run(
