@@ -125,17 +125,18 @@ def solve(
         :meth:`fastmem.linalg.amg.AMGPreconditioner.update`).  0: a new setup whenever
         the active set changed.
     multigrid : {"auto", "geometric", "algebraic"}
-        Preconditioner of the decoupled CGs on the levels of nested iteration
-        (``"inexact"`` and ``"exact-amg"``).  ``"auto"`` (default): ``"geometric"``
-        on the levels with at least 32,768 interior vertices, ``"algebraic"``
-        below (there both are as fast, and a small solve compiles no multigrid
-        kernel).  ``"geometric"``: V(1,1) cycles over the
-        chain of nested meshes, whose interpolations are known, with Galerkin
-        coarse operators formed in the kernel threads and hybrid Gauss-Seidel
-        sweeps (:class:`fastmem.linalg.gmg.NestedMG`; the gap system's coarse
-        spaces truncated to the inactive vertices); a mesh without a chain, and the
-        general path, keep pyamg.  ``"algebraic"``: pyamg's smoothed aggregation
-        (``amg_options``) on every level, as before issue 33.
+        Preconditioner of the CGs on the levels of nested iteration (``"inexact"``
+        and ``"exact-amg"``).  ``"auto"`` (default): ``"geometric"`` on the
+        levels with at least 32,768 interior vertices, ``"algebraic"`` below
+        (there both are as fast, and a small solve compiles no multigrid
+        kernel).  ``"geometric"``: V(1,1) cycles over the chain of nested
+        meshes, whose interpolations are known, with Galerkin coarse operators
+        formed in the kernel threads and hybrid Gauss-Seidel sweeps
+        (:class:`fastmem.linalg.gmg.NestedMG`; the gap system's coarse spaces
+        truncated to the inactive vertices, the general path's built on the
+        chain's block interpolations); a mesh without a chain keeps pyamg.
+        ``"algebraic"``: pyamg's smoothed aggregation (``amg_options``) on every
+        level, as before issue 33.
     nested : bool or "auto"
         Without ``initial`` (every method): solve on the chain of coarser meshes
         (:meth:`Mesh.coarser`, down to about 1000 vertices) and prolong each

@@ -185,6 +185,24 @@ class NestedChain:
     def __len__(self):
         return len(self.p)
 
+    def blocks(self) -> NestedChain:
+        """Return the chain of two unknowns per vertex: ``blockdiag(P_l, P_l)`` per link.
+
+        Cached: the general path's hierarchies (:meth:`with_first`) share it.
+        """
+        if getattr(self, "_blocks", None) is None:
+            self._blocks = NestedChain([sp.block_diag((q, q), format="csr") for q in self.p])
+        return self._blocks
+
+    def with_first(self, first) -> NestedChain:
+        """Return this chain with its finest link replaced by ``first`` (the rest shared).
+
+        The transposes of the shared links are not formed again.
+        """
+        out = NestedChain([first] + self.p[1:])
+        out._r[1:] = [self.r(k) for k in range(1, len(self.p))]
+        return out
+
     def r(self, level: int) -> sp.csr_matrix:
         """Return the restriction ``P_level^T`` (CSR)."""
         if self._r[level] is None:

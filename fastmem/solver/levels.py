@@ -67,6 +67,13 @@ def _two_grid(options, scene) -> bool:
     return TWO_GRID and no.method in ("inexact", "exact-amg") and decoupled
 
 
+def _general_cg(options, scene) -> bool:
+    """Whether the level's linear step is the general path's CG (:class:`GeneralCG`)."""
+    no = options.newton
+    general = no.path == "general" or (no.path == "auto" and not scene.constant_mu)
+    return no.method in ("inexact", "exact-amg") and general
+
+
 def _merge_safeguard(records):
     """Sum the per-level safeguard bookkeeping into one record."""
     total = new_safeguard_record()
@@ -114,14 +121,15 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
             coarse = levels[lev - 1]
             mat = interpolation_matrix(coarse.mesh, sc.mesh)
             triple = prolong_triple(sc, coarse, triple, mat)
+            ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
+            geometric = multigrid == "geometric" or (
+                multigrid == "auto" and ii.size >= GEOMETRIC_MIN_UNKNOWNS
+            )
             if _two_grid(options, sc):
-                ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
                 if multigrid != "algebraic":
                     # this level's interpolation joins those of the coarser levels
                     transfers.insert(0, mat[ii][:, ic].tocsr())
-                if multigrid == "geometric" or (
-                    multigrid == "auto" and ii.size >= GEOMETRIC_MIN_UNKNOWNS
-                ):
+                if geometric:
                     # the decoupled CGs' geometric multigrid over the whole chain
                     # (fastmem.linalg.gmg.NestedMG)
                     prolongation, used = [NestedChain(transfers)], "geometric"
@@ -130,6 +138,11 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
                     # handed over as a list that newton_min empties: the step's two-grid
                     # cycle is then its only owner and can free it (TwoGridLaplacian.release)
                     prolongation, used = [mat[ii][:, ic].tocsr()], "two-grid"
+            elif _general_cg(options, sc) and multigrid != "algebraic":
+                transfers.insert(0, mat[ii][:, ic].tocsr())
+                if geometric:
+                    # the general path's CG: the chain's block interpolations (GeneralCG)
+                    prolongation, used = [NestedChain(transfers)], "geometric"
             del mat, coarse
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio

@@ -92,13 +92,37 @@ def _resetup(matrix, options, stats):
 
 
 class GeneralCG:
-    """CG on the reduced SPD system of one active set (general path, docs/method.md §3.2)."""
+    """CG on the reduced SPD system of one active set (general path, docs/method.md §3.2).
 
-    def __init__(self, system, options, stats):
+    Preconditioner: pyamg's smoothed aggregation, set up for every new active set; on
+    a level of nested iteration with a :class:`fastmem.linalg.gmg.NestedChain`
+    (``chain``), the geometric multigrid over the chain's block interpolations
+    (:meth:`_geometric`).
+    """
+
+    def __init__(self, system, options, stats, chain=None):
         self.system = system
         self.options = options
         self.stats = stats
         self.active = None
+        self.chain = chain if isinstance(chain, NestedChain) and len(chain) else None
+
+    def _geometric(self, mat, active, key="amg"):
+        """Build the geometric multigrid of the reduced matrix ``mat`` of ``active``.
+
+        The reduced unknowns are u1 on the interior and u2 on its inactive vertices
+        (u2 = u1 - g on the active ones); the coarse spaces hold both membranes on
+        the coarser meshes, interpolated by ``P`` and restricted to the reduced
+        unknowns: ``blockdiag(P_0, P_0[inactive])`` onto the finest level, then
+        ``blockdiag(P_l, P_l)``.  The coarse operators are Galerkin products of the
+        reduced matrix, so per-triangle tensions need no coarse tensions.
+        """
+        p0 = self.chain.p[0]
+        first = sp.block_diag((p0, p0[~active]), format="csr")
+        chain = self.chain.blocks().with_first(first)
+        pre = NestedMG(mat, chain, self.stats, options=self.options.amg_options)
+        pre.build(key)
+        return pre
 
     def start(self, active, u1, u2):
         """Set up the CG of the step with active set ``active``, warm-started at ``(u1, u2)``."""
@@ -107,9 +131,12 @@ class GeneralCG:
         p = st.prolongation(active)
         if self.active is None or not np.array_equal(active, self.active):
             self.mat = threaded((p.T @ st.k_ii @ p).tocsr())  # new size: new hierarchy
-            self.pre = amg_preconditioner(self.mat, dict(self.options.amg_options))
-            self.stats["amg_setups"] += 1
-            self.stats["amg_setup_seconds"] += self.pre.setup_seconds
+            if self.chain is not None:
+                self.pre = self._geometric(self.mat, active)  # books its own setup
+            else:
+                self.pre = amg_preconditioner(self.mat, dict(self.options.amg_options))
+                self.stats["amg_setups"] += 1
+                self.stats["amg_setup_seconds"] += self.pre.setup_seconds
         self.active = active.copy()
         self.p = p
         rhs = p.T @ np.concatenate([st.rhs1, st.rhs2])
@@ -149,7 +176,10 @@ class GeneralCG:
             p = self.p = st.prolongation(self.active)
             self.mat = self.cg.a = threaded((p.T @ st.k_ii @ p).tocsr())
             self.cg.b = p.T @ np.concatenate([st.rhs1, st.rhs2])
-            self.pre = self.cg.m = _resetup(self.mat, self.options, self.stats)
+            if self.chain is not None:
+                self.pre = self.cg.m = self._geometric(self.mat, self.active, "spill")
+            else:
+                self.pre = self.cg.m = _resetup(self.mat, self.options, self.stats)
 
     def solve_exact(self):
         """Iterate to round-off; return the CG iterations done (all CGs)."""
@@ -554,7 +584,7 @@ class AMGStep:
         if self.decoupled:
             self.cg = DecoupledCG(system, options, self.stats, prolongation)
         else:
-            self.cg = GeneralCG(system, options, self.stats)
+            self.cg = GeneralCG(system, options, self.stats, prolongation)
         self.total_iterations = 0
 
     def face_solve(self, active, warm):

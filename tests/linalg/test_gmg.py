@@ -7,7 +7,12 @@
   any number of threads, and CG with it converges in a bounded number of
   iterations (the Laplacian and a gap system with a large active set);
 - fm.solve with multigrid="geometric" gives what "algebraic" gives: the same
-  solution to round-off with exact-amg, a guaranteed bound with inexact.
+  solution to round-off with exact-amg, a guaranteed bound with inexact; on
+  the decoupled path and on the general path (per-triangle tensions, the
+  block interpolations of GeneralCG);
+- a gap hierarchy moved to a new active set is the one a build gives, bit for
+  bit; hierarchies freed for a flux and rebuilt change no result;
+- after fm.warm_up(large=True) a solve that takes it compiles nothing.
 """
 
 import numba
@@ -224,6 +229,53 @@ def test_spill_changes_no_result(monkeypatch):
     spilled = solve()
     levels = spilled.parameters["solver"]["levels"]
     assert sum(lv.get("spill_setups", 0) for lv in levels) > 0  # something was rebuilt
+    monkeypatch.setattr(inexact, "SPILL", False)
+    kept = solve()
+    for name in ("u1", "u2", "lam"):
+        np.testing.assert_array_equal(getattr(spilled, name), getattr(kept, name))
+
+
+def test_general_path_geometric_against_algebraic():
+    """The general path's CG with the chain's block interpolations (GeneralCG._geometric)."""
+    mesh = fm.Mesh.square(64)
+    x = mesh.vertices[mesh.triangles, 0].mean(axis=1)
+    mu1 = np.where(x < 0.0, 1.0, 3.0)  # per-triangle tension: the general path
+
+    def scene():
+        return fm.Scene(mesh, mu=(mu1, 1.0), f=(-1.0, 1.0), g=0.1)
+
+    ref = fm.solve(scene(), method="exact-amg", multigrid="algebraic")
+    geo = fm.solve(scene(), method="exact-amg", multigrid="geometric")
+    assert geo.parameters["solver"]["path"] == "general"
+    used = [lv["multigrid"] for lv in geo.parameters["solver"]["levels"]]
+    assert used[0] is None
+    assert set(used[1:]) == {"geometric"}
+    for u, v in ((ref.u1, geo.u1), (ref.u2, geo.u2), (ref.lam, geo.lam)):
+        assert np.abs(u - v).max() <= 1e-9 * max(1.0, np.abs(u).max())
+    assert np.array_equal(ref.active, geo.active)
+    # inexact on the manufactured solution, forced onto the general path: the bound holds
+    mms = Manufactured()
+    eff = {}
+    for mg in ("algebraic", "geometric"):
+        out = fm.solve(mms.scene(mesh), method="inexact", path="general", multigrid=mg)
+        err = mms.energy_error(mesh, out.u1, out.u2)
+        assert out.eta >= err, mg
+        eff[mg] = out.eta / err
+    assert abs(eff["geometric"] / eff["algebraic"] - 1.0) < 0.03, eff
+
+
+def test_general_path_spill_changes_no_result(monkeypatch):
+    from fastmem.solver import inexact
+
+    def solve():
+        mesh = fm.Mesh.square(64)
+        x = mesh.vertices[mesh.triangles, 0].mean(axis=1)
+        scene = fm.Scene(mesh, mu=(np.where(x < 0.0, 1.0, 3.0), 1.0), f=(-1.0, 1.0), g=0.1)
+        return fm.solve(scene, full_history=True, multigrid="geometric")
+
+    monkeypatch.setattr(inexact, "SPILL", True)
+    spilled = solve()
+    assert sum(lv.get("spill_setups", 0) for lv in spilled.parameters["solver"]["levels"]) > 0
     monkeypatch.setattr(inexact, "SPILL", False)
     kept = solve()
     for name in ("u1", "u2", "lam"):
