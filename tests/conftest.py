@@ -16,6 +16,8 @@ SLOW = {
     "package/test_examples.py::test_example[gallery]": 16.1,  # every figure of docs/gallery.md
     "package/test_scaling.py::test_merge_keeps_the_other_sizes_and_refits": 12.2,
     "cli/test_coldstart.py::test_cold_run_with_helper_matches_in_process_solve": 8.9,
+    # a fresh process: warm_up(large=True), then a 66k-vertex solve (about 20 s cold)
+    "linalg/test_gmg.py::test_warm_up_compiles_the_nested_multigrid": 2.6,
     "sweeps/test_sweep_claims.py::test_orphan_of_killed_client_is_not_solved_again": 8.8,
     "sweeps/test_sweep.py::test_client_killed_and_restarted": 8.0,
     "package/test_imports.py::test_module_imports_alone[bench]": 7.5,

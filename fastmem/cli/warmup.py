@@ -44,7 +44,7 @@ from .. import kernels
 from ..errors import ParameterError, checked_keywords
 from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
-from ..kernels import assembly, flux, rows, topology
+from ..kernels import assembly, flux, rows, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
@@ -338,6 +338,12 @@ def _precompile_masked() -> None:
     masked_gap(a, np.zeros(a.shape[0], dtype=bool))
 
 
+def _precompile_sums() -> None:
+    """Compile the threaded sums of the bound's maps (meshes of 32,768 triangles and more)."""
+    maps = [np.zeros(1) for _ in range(6)]
+    sums.combine_blocks(0, 1, sums.BLOCK, *maps, np.empty((1, len(sums.COMBINE_SUMS))))
+
+
 def _precompile_cycles(large: bool) -> None:
     """Compile the multigrid cycles' kernels (hybrid sweep, threaded products; nested MG).
 
@@ -423,6 +429,8 @@ def warm_up(
     _precompile_cycles(large)  # (with or without a helper: the tiny solve does not reach them)
     if large:
         _precompile_masked()
+        if uses_flux:
+            _precompile_sums()
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:
