@@ -18,6 +18,11 @@ SLOW = {
     "cli/test_coldstart.py::test_cold_run_with_helper_matches_in_process_solve": 8.9,
     # a fresh process: warm_up(large=True), then a 66k-vertex solve (about 20 s cold)
     "linalg/test_gmg.py::test_warm_up_compiles_the_nested_multigrid": 2.6,
+    # these two offset the default run's share of issue 33's tests (about 10 s): the
+    # layer bound above the error stays in test_layer_bound_guaranteed_and_sharp (n = 8),
+    # a quiet sweep in test_sweep_console.py::test_quiet_command_prints_no_info_line
+    "estimators/test_layers.py::test_split_form_wins_and_stays_above_the_error": 7.3,
+    "sweeps/test_sweep_spawn.py::test_script_with_guard_sweeps_quietly": 5.2,
     "sweeps/test_sweep_claims.py::test_orphan_of_killed_client_is_not_solved_again": 8.8,
     "sweeps/test_sweep.py::test_client_killed_and_restarted": 8.0,
     "package/test_imports.py::test_module_imports_alone[bench]": 7.5,
