@@ -15,7 +15,8 @@ structured meshes, the guaranteed bound of the returned triple).  Timed: a
 fresh scene on the mesh (loads, assembly, nested iteration, bound); the mesh
 and its topology are built before the timing (``mesh_seconds`` on its own).
 
-Adaptive refinement: ``fm.solve(scene, tol=tol, theta=--theta)`` from the
+Adaptive refinement: ``fm.solve(scene, tol=tol, theta=--theta,
+min_growth=--min-growth)`` from the
 coarsest uniform mesh (n = ``--start``), the public call, timed as a whole
 (the mesh of n = ``--start`` built inside the timing).  Tolerances: by
 default the bound eta reached by uniform refinement (times 1 + 1e-6, so that
@@ -298,7 +299,11 @@ def _adaptive_call(case, tol, a):
     import fastmem as fm
 
     return fm.solve(
-        case.scene(case.mesh(a.start)), tol=tol, theta=a.theta, max_vertices=a.max_vertices
+        case.scene(case.mesh(a.start)),
+        tol=tol,
+        theta=a.theta,
+        min_growth=a.min_growth,
+        max_vertices=a.max_vertices,
     )
 
 
@@ -434,6 +439,7 @@ def trace(case, tol, a):
                 case.scene(case.mesh(a.start)),
                 tol=tol,
                 theta=a.theta,
+                min_growth=a.min_growth,
                 max_vertices=a.max_vertices,
                 max_levels=k,
             )
@@ -656,6 +662,7 @@ def big_worker(a):
         case.scene(case.mesh(a.start)),
         tol=a.big_tol,
         theta=a.theta,
+        min_growth=a.min_growth,
         max_vertices=a.big_max_vertices,
         time_budget=a.big_time_budget,
         level_monitor=monitor,
@@ -686,6 +693,8 @@ def big_stage(a):
         a.start,
         "--theta",
         a.theta,
+        "--min-growth",
+        a.min_growth,
         "--big-tol",
         a.big_tol,
         "--big-max-vertices",
@@ -748,6 +757,9 @@ def main(argv=None):
     p.add_argument("--uniform-max", type=int, default=None, help="largest uniform n (power of 2)")
     p.add_argument("--start", type=int, default=16, help="n of the adaptive loop's first mesh")
     p.add_argument("--theta", type=float, default=0.5, help="Dörfler parameter")
+    p.add_argument(
+        "--min-growth", type=float, default=1.0, help="least vertex growth per refinement"
+    )
     p.add_argument("--tols-lshape", type=float, nargs="*", default=None)
     p.add_argument("--tols-manufactured", type=float, nargs="*", default=None)
     p.add_argument("--tol-n-lshape", type=int, nargs="*", default=None)
@@ -789,6 +801,7 @@ def main(argv=None):
             "uniform_max",
             "start",
             "theta",
+            "min_growth",
             "repeat",
             "budget",
             "max_vertices",

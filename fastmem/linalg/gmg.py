@@ -162,6 +162,7 @@ class NestedChain:
                 )
         self._r = [None] * len(self.p)
         self._full = None  # (base, the unmasked coarse operators, cancellations kept)
+        self._blocks = None  # the chain of two unknowns per vertex (blocks())
 
     def full_operators(self, base) -> list:
         """Return the coarse operators of ``base`` with every entry of their pattern stored.
@@ -190,7 +191,7 @@ class NestedChain:
 
         Cached: the general path's hierarchies (:meth:`with_first`) share it.
         """
-        if getattr(self, "_blocks", None) is None:
+        if self._blocks is None:
             self._blocks = NestedChain([sp.block_diag((q, q), format="csr") for q in self.p])
         return self._blocks
 
