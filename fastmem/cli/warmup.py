@@ -42,6 +42,7 @@ from numba.core.dispatcher import Dispatcher
 
 from .. import kernels
 from ..errors import ParameterError, checked_keywords
+from ..estimators.flux import find_patch_classes
 from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, sums, topology
@@ -241,7 +242,7 @@ def after_the_caller(dispatcher):
 
 
 try:
-    for dispatcher in (flux._refine_balance, flux._reduced_solve):
+    for dispatcher in (flux._refine_balance, flux._reduced_factor, flux._reduced_solve):
         after_the_caller(dispatcher)
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass
@@ -344,6 +345,16 @@ def _precompile_sums() -> None:
     sums.combine_blocks(0, 1, sums.BLOCK, *maps, np.empty((1, len(sums.COMBINE_SUMS))))
 
 
+def _precompile_classes() -> None:
+    """Compile the patch-class search of the flux (meshes of 20,000 vertices and more).
+
+    :func:`fastmem.estimators.flux.patch_classes` runs it only on such meshes, which the
+    tiny solves do not reach; here it runs on a 4 x 4 square's arrays (one class of
+    nine interior patches), with the types a solve passes.
+    """
+    find_patch_classes(Mesh.square(4))
+
+
 def _precompile_cycles(large: bool) -> None:
     """Compile the multigrid cycles' kernels (hybrid sweep, threaded products; nested MG).
 
@@ -394,8 +405,10 @@ def warm_up(
     large : bool
         Whether its mesh has at least :data:`fastmem.linalg.sparse.THREADED_ROWS`
         vertices: the active-set matrices are then built by the threaded kernels
-        of :mod:`fastmem.kernels.masked`, and nested iteration takes the geometric
-        multigrid (:mod:`fastmem.kernels.mg`), which the tiny solves do not reach.
+        of :mod:`fastmem.kernels.masked`, nested iteration takes the geometric
+        multigrid (:mod:`fastmem.kernels.mg`) and the flux reconstruction looks
+        for patch classes (:func:`fastmem.kernels.flux.patch_classes`; also with
+        ``adaptive``), which the tiny solves do not reach.
 
     Returns
     -------
@@ -431,6 +444,8 @@ def warm_up(
         _precompile_masked()
         if uses_flux:
             _precompile_sums()
+    if uses_flux and (large or adaptive):
+        _precompile_classes()  # meshes of 20,000 vertices and more (adaptive: the later ones)
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:

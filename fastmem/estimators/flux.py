@@ -124,6 +124,48 @@ def _coloring(mesh):
     return cache["vertex_colors"]
 
 
+#: meshes from this many vertices on look for patch classes (reused patch factorisations,
+#: :func:`fastmem.kernels.flux.patch_classes`); below, the search costs more than it saves
+PATCH_CLASS_MIN_VERTICES = 20_000
+
+
+def patch_arrays(mesh) -> tuple:
+    """Return the mesh arrays that :func:`fastmem.kernels.flux.patch_classes` reads."""
+    return (
+        mesh.vertices,
+        mesh.triangles,
+        mesh.diameters,
+        mesh.triangle_edges,
+        mesh.edge_triangles,
+        np.ascontiguousarray(mesh.boundary_vertex_mask),
+        mesh.patch_ptr,
+        mesh.patch_triangles,
+        mesh.patch_local,
+    )
+
+
+def find_patch_classes(mesh):
+    """Search the mesh's patch classes (:func:`fastmem.kernels.flux.patch_classes`), uncached."""
+    max_nt = int(np.diff(mesh.patch_ptr).max())
+    return _kf.patch_classes(patch_arrays(mesh), max_nt, numba.get_num_threads())
+
+
+def patch_classes(mesh, mu1, mu2):
+    """Return the mesh's patch classes for a reconstruction with tensions mu1, mu2, or None.
+
+    Only constant tensions share factorisations between patches, and only
+    meshes of :data:`PATCH_CLASS_MIN_VERTICES` and more are searched; the
+    classes (and the factors stored in them on first use) are cached on the
+    mesh.
+    """
+    if np.ndim(mu1) or np.ndim(mu2) or mesh.n_vertices < PATCH_CLASS_MIN_VERTICES:
+        return None
+    cache = mesh._cache
+    if "patch_classes" not in cache:
+        cache["patch_classes"] = find_patch_classes(mesh)
+    return cache["patch_classes"]
+
+
 def load_moments(scene, i: int):
     """``int_K f_i lambda_j lambda_k`` per triangle, shape (M, 3, 3), or None for constants.
 
@@ -409,6 +451,7 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=N
         numba.get_num_threads(),
         chi_row,
         chi_mom,
+        classes=patch_classes(mesh, scene.mu1, scene.mu2),
     )
     return Fluxes(mesh=mesh, coef=coef, contact=contact)
 
@@ -525,7 +568,6 @@ def _cross_point_setup(scene, i: int, rings: int):
 
 
 def _build_cross_point_setup(mesh, mu, rings: int, i: int):
-
 
     marked = cross_point_vertices(mesh, mu)
     if not marked.any():
@@ -736,7 +778,6 @@ def _ring_step(mesh, coef, i, u, setup, bary, w):
     b = np.bincount(local.ravel(), weights=bloc.ravel(), minlength=nu)
     phi = np.zeros(nu)
     if setup["lu"] is None:
-
         setup["lu"] = splu(setup.pop("matrix"))
     phi[idx] = setup["lu"].solve(b[idx])
     ph = phi[local]  # (R, 6)
@@ -762,7 +803,6 @@ def _joint_setup(scene, i: int, rings: int, ring_setup):
     key = ("cross_point_joint", i, rings)
     if cache is not None and key in cache:
         return cache[key]
-
 
     mesh = scene.mesh
     n = mesh.n_vertices
@@ -798,8 +838,6 @@ def _joint_setup(scene, i: int, rings: int, ring_setup):
     if n <= CROSS_POINT_DIRECT_VERTICES:
         solve = splu(inner.tocsc()).solve
     else:
-
-
         ml = amg_preconditioner(a[1:, 1:].tocsr())  # the solver's SA setup and V-cycle
         bb = k[n:, n:].tocsc()
         lu_b = splu(bb) if nb else None

@@ -36,7 +36,7 @@ from ..fem.quadrature import triangle_rule
 from ..kernels import cut as _cut
 from ..kernels import flux as _kf
 from ..kernels import obstacle as _kob
-from .flux import _coloring, _mu_array
+from .flux import _coloring, _mu_array, patch_classes
 from .terms import friedrichs_constant, mass_matrix
 
 __all__ = ["ObstacleEstimate", "cheap_terms", "estimate", "residual", "split_multiplier"]
@@ -240,6 +240,7 @@ def flux_terms(problem, u, lam_signed, rho, shaped=None) -> np.ndarray:
         numba.get_num_threads(),
         chi_row,
         chi_mom,
+        classes=patch_classes(mesh, problem.mu, problem.mu),
     )
     bary, w = triangle_rule(5)
     out = _kf.flux_estimators(

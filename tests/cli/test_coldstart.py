@@ -44,6 +44,7 @@ def test_precompile_compiles_the_pipeline_specialisations():
         bound.flux_terms(scene, res.u1, res.u2, fluxes)
     kernels = (
         kf._reconstruct_chunk,
+        kf._reduced_factor,
         kf._reduced_solve,
         kf._refine_balance,
         kf._coefficients_chunk,
