@@ -348,6 +348,83 @@ def _gradients(i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, inv2a):
 
 
 @jit
+def _patch_loads(
+    i,
+    t,
+    area,
+    m1,
+    m2,
+    du1x,
+    du1y,
+    du2x,
+    du2y,
+    gax,
+    gay,
+    f1c,
+    f2c,
+    load1,
+    load2,
+    chi_row,
+    chi_mom,
+    glued,
+    r1a,
+    r2a,
+    lam_a,
+    redist_a,
+    gam,
+    gloc,
+    kapj,
+):
+    """Write the data ``(g_i^a, lambda_j)_K`` of one patch triangle, contact load included, to gloc.
+
+    Triangle t, where the patch vertex has local index i; ``kapj`` is scratch.
+    (Shared by the patch kernel and the class members' :func:`_member_chunk`.)
+    """
+    # data (g, lambda_j)
+    dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
+    dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
+    for j in range(3):
+        mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
+        if load1.shape[0] == 1:
+            l1 = f1c * mij
+        else:
+            l1 = load1[t, i, j]
+        if load2.shape[0] == 1:
+            l2 = f2c * mij
+        else:
+            l2 = load2[t, i, j]
+        if glued:
+            # glued contact load on this triangle: (chi^a, lambda_j) moves
+            # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
+            s_chi = chi_row[t]
+            if s_chi >= 0:
+                l1 += chi_mom[s_chi, i, j]
+                l2 -= chi_mom[s_chi, i, j]
+        gloc[j, 0] = l1 - dot1 - r1a * mij
+        gloc[j, 1] = l2 - dot2 - r2a * mij
+        # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
+        kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
+    if redist_a:
+        # redistributed contact load (fastmem.estimators.flux.contact_redistribution): the
+        # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
+        # negative vertex values cut to 0, plus gamma_a m_K psi_a
+        ssum = kapj[0] + kapj[1] + kapj[2]
+        scale = 12.0 / area
+        n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
+        n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
+        n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
+        nsum = n0 + n1 + n2
+        # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
+        gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
+        kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
+        kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
+        kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
+    for j in range(3):
+        gloc[j, 0] += kapj[j]
+        gloc[j, 1] -= kapj[j]
+
+
+@jit
 def _reconstruct_chunk(
     order,
     k0,
@@ -407,18 +484,19 @@ def _reconstruct_chunk(
     M', its factor and the Schur complement; otherwise membrane 2 gets its own
     (``mred2``, ``cmat2``, ``smat2``).
 
-    Patch classes (:func:`patch_classes`; constant tensions only): a vertex
-    with ``cls[a] >= 0`` takes the geometric part of its patch problem -- the
-    edge dofs, the bubble elimination, the factors of M' and of the Schur
-    complement -- from the class storage ``cint[c]``, ``cflt[coff[c]:]``
-    and computes only its right-hand sides and the triangular solves, with
-    the same arithmetic as a patch computed in full (the same bits).
-    ``store``: the vertices ``order[k0:k1]`` are class representatives;
-    compute their patches in full, write the class storage, add nothing to
-    ``out``.  ``cls`` of shape (1,): no classes.
+    Patch classes (:func:`patch_classes`; constant tensions only): vertices
+    with ``cls[a] >= 0`` are skipped here and solved by :func:`_member_chunk`
+    from the class storage ``cint``, ``cflt``, ``coff``.  ``store``: the
+    vertices ``order[k0:k1]`` are class representatives; compute their
+    patches in full, write the class storage (:func:`_class_store`), add
+    nothing to ``out``.  ``cls`` of shape (1,): no classes.  (A separate
+    kernel for the members: the patch kernel, which every first run
+    compiles, stays as large as it was; the members' kernel compiles only
+    for meshes with classes.)
     """
     per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
     classes = cls.shape[0] > 1 and not per_triangle
+    glued = chi_row.shape[0] == triangles.shape[0]
     wnt = max_nt  # workspace sizes: triangles of the largest patch
     wne = 6 * max_nt  # and a bound on its edge dofs (3 edges per triangle)
     edge_ids = np.empty(3 * wnt, dtype=np.int64)
@@ -454,7 +532,8 @@ def _reconstruct_chunk(
         nt = patch_ptr[a + 1] - pstart
         interior = not boundary[a]
         cid = cls[a] if classes else -1
-        member = cid >= 0 and not store
+        if cid >= 0 and not store:
+            continue  # a class member: _member_chunk
         # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
         shared = True
         # contrast of the weights on the patch: beyond 1e3 one step of iterative
@@ -476,48 +555,40 @@ def _reconstruct_chunk(
                 if abs(w1 - w2) > 1e-13 * max(w1, w2):
                     shared = False
             refine = hi1 > 1e3 * lo1 or hi2 > 1e3 * lo2
-        if member:
-            # --- the class's edge dofs and flux-balance row starts
-            n_e = cint[cid, 1]
-            for p in range(nt):
-                cstart[p] = cint[cid, 2 + p]
-                for r in range(6):
-                    emap[p, r] = cint[cid, 2 + max_nt + 6 * p + r]
-        else:
-            # --- patch edges with dofs
-            ne = 0
-            for p in range(nt):
-                t = patch_triangles[pstart + p]
-                i = patch_local[pstart + p]
-                for k in range(3):
-                    e = tri_edges[t, k]
-                    on_bnd = edge_tris[e, 1] < 0
-                    if k == i and not (on_bnd and not interior):
-                        emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
-                        emap[p, 2 * k + 1] = -1
-                        continue
-                    s = -1
-                    for q in range(ne):
-                        if edge_ids[q] == e:
-                            s = q
-                            break
-                    if s < 0:
-                        edge_ids[ne] = e
-                        s = ne
-                        ne += 1
-                    emap[p, 2 * k] = 2 * s
-                    emap[p, 2 * k + 1] = 2 * s + 1
-            n_e = 2 * ne
+        # --- patch edges with dofs
+        ne = 0
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            i = patch_local[pstart + p]
+            for k in range(3):
+                e = tri_edges[t, k]
+                on_bnd = edge_tris[e, 1] < 0
+                if k == i and not (on_bnd and not interior):
+                    emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
+                    emap[p, 2 * k + 1] = -1
+                    continue
+                s = -1
+                for q in range(ne):
+                    if edge_ids[q] == e:
+                        s = q
+                        break
+                if s < 0:
+                    edge_ids[ne] = e
+                    s = ne
+                    ne += 1
+                emap[p, 2 * k] = 2 * s
+                emap[p, 2 * k + 1] = 2 * s + 1
+        n_e = 2 * ne
+        for r in range(n_e):
+            for s in range(r + 1):
+                mred[r, s] = 0.0
+        if not shared:
             for r in range(n_e):
                 for s in range(r + 1):
-                    mred[r, s] = 0.0
-            if not shared:
-                for r in range(n_e):
-                    for s in range(r + 1):
-                        mred2[r, s] = 0.0
-            for p in range(nt):
-                for r in range(n_e):
-                    cmat[p, r] = 0.0
+                    mred2[r, s] = 0.0
+        for p in range(nt):
+            for r in range(n_e):
+                cmat[p, r] = 0.0
         for r in range(n_e):
             fred[r, 0] = 0.0
             fred[r, 1] = 0.0
@@ -539,23 +610,7 @@ def _reconstruct_chunk(
             y1 = vertices[i1, 1]
             x2 = vertices[i2, 0]
             y2 = vertices[i2, 1]
-            if member:
-                # the class's per-triangle quantities (_class_store wrote them)
-                o = coff[cid] + _CF * p
-                for r in range(6):
-                    kmat[p, 0, r] = cflt[o + r]
-                    kmat[p, 1, r] = cflt[o + 6 + r]
-                    arow[p, 0, r] = cflt[o + 12 + r]
-                    arow[p, 1, r] = cflt[o + 18 + r]
-                    binv[p, r] = cflt[o + 40 + r]
-                for r in range(8):
-                    tloc[p, 0, r] = cflt[o + 24 + r]
-                    tloc[p, 1, r] = cflt[o + 32 + r]
-                area = cflt[o + 46]
-            else:
-                area = rt1_local_xy(
-                    x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau
-                )
+            area = rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau)
             du1x, du1y, du2x, du2y, gax, gay = _gradients(
                 i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, 0.5 / area
             )
@@ -564,69 +619,53 @@ def _reconstruct_chunk(
             # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
             w1 = mu1_0 / m1
             w2 = w1 if shared else mu2_0 / m2
-            # data (g, lambda_j)
-            dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
-            dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
-            for j in range(3):
-                mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
-                if load1.shape[0] == 1:
-                    l1 = f1c * mij
-                else:
-                    l1 = load1[t, i, j]
-                if load2.shape[0] == 1:
-                    l2 = f2c * mij
-                else:
-                    l2 = load2[t, i, j]
-                if chi_row.shape[0] == triangles.shape[0]:
-                    # glued contact load on this triangle: (chi^a, lambda_j) moves
-                    # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
-                    s_chi = chi_row[t]
-                    if s_chi >= 0:
-                        l1 += chi_mom[s_chi, i, j]
-                        l2 -= chi_mom[s_chi, i, j]
-                gloc[j, 0] = l1 - dot1 - r1a * mij
-                gloc[j, 1] = l2 - dot2 - r2a * mij
-                # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
-                kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
-            if redist_a:
-                # redistributed contact load (fastmem.estimators.flux.contact_redistribution): the
-                # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
-                # negative vertex values cut to 0, plus gamma_a m_K psi_a
-                ssum = kapj[0] + kapj[1] + kapj[2]
-                scale = 12.0 / area
-                n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
-                n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
-                n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
-                nsum = n0 + n1 + n2
-                # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
-                gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
-                kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
-                kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
-                kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
-            for j in range(3):
-                gloc[j, 0] += kapj[j]
-                gloc[j, 1] -= kapj[j]
-            if not member:
-                # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
-                b00 = div[1, 6]
-                b01 = div[1, 7]
-                b10 = div[2, 6]
-                b11 = div[2, 7]
-                idet = 1.0 / (b00 * b11 - b01 * b10)
-                binv[p, 0] = b11 * idet
-                binv[p, 1] = -b01 * idet
-                binv[p, 2] = -b10 * idet
-                binv[p, 3] = b00 * idet
-                for r in range(6):
-                    kmat[p, 0, r] = binv[p, 0] * div[1, r] + binv[p, 1] * div[2, r]
-                    kmat[p, 1, r] = binv[p, 2] * div[1, r] + binv[p, 3] * div[2, r]
-                # flux balance row: sum of the three divergence rows (bubbles eliminated)
-                binv[p, 4] = div[0, 6] + div[1, 6] + div[2, 6]
-                binv[p, 5] = div[0, 7] + div[1, 7] + div[2, 7]
-                for r in range(8):
-                    tloc[p, 0, r] = tau[i, 0, r]
-                    tloc[p, 1, r] = tau[i, 1, r]
-                areas[p] = area
+            _patch_loads(
+                i,
+                t,
+                area,
+                m1,
+                m2,
+                du1x,
+                du1y,
+                du2x,
+                du2y,
+                gax,
+                gay,
+                f1c,
+                f2c,
+                load1,
+                load2,
+                chi_row,
+                chi_mom,
+                glued,
+                r1a,
+                r2a,
+                lam_a,
+                redist_a,
+                gam,
+                gloc,
+                kapj,
+            )
+            # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
+            b00 = div[1, 6]
+            b01 = div[1, 7]
+            b10 = div[2, 6]
+            b11 = div[2, 7]
+            idet = 1.0 / (b00 * b11 - b01 * b10)
+            binv[p, 0] = b11 * idet
+            binv[p, 1] = -b01 * idet
+            binv[p, 2] = -b10 * idet
+            binv[p, 3] = b00 * idet
+            for r in range(6):
+                kmat[p, 0, r] = binv[p, 0] * div[1, r] + binv[p, 1] * div[2, r]
+                kmat[p, 1, r] = binv[p, 2] * div[1, r] + binv[p, 3] * div[2, r]
+            # flux balance row: sum of the three divergence rows (bubbles eliminated)
+            binv[p, 4] = div[0, 6] + div[1, 6] + div[2, 6]
+            binv[p, 5] = div[0, 7] + div[1, 7] + div[2, 7]
+            for r in range(8):
+                tloc[p, 0, r] = tau[i, 0, r]
+                tloc[p, 1, r] = tau[i, 1, r]
+            areas[p] = area
             c00 = binv[p, 0]
             c01 = binv[p, 1]
             c10 = binv[p, 2]
@@ -650,12 +689,11 @@ def _reconstruct_chunk(
                     st = pr
                 k0 = kmat[p, 0, r]
                 k1 = kmat[p, 1, r]
-                if not member:
-                    cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
-                    crow[p, r] = cmat[p, pr]
-                    # A = M_eb - K^T M_bb (row r)
-                    arow[p, 0, r] = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
-                    arow[p, 1, r] = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
+                cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
+                crow[p, r] = cmat[p, pr]
+                # A = M_eb - K^T M_bb (row r)
+                arow[p, 0, r] = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
+                arow[p, 1, r] = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
                 a0 = arow[p, 0, r]
                 a1 = arow[p, 1, r]
                 te1 = -m1 * (du1x * tloc[p, 0, r] + du1y * tloc[p, 1, r])
@@ -664,8 +702,6 @@ def _reconstruct_chunk(
                 fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
                 fred[pr, 0] += w1 * fe1
                 fred[pr, 1] += w2 * fe2
-                if member:
-                    continue
                 # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K = M_ee - A K - K^T M_be
                 for s in range(6):
                     ps = emap[p, s]
@@ -684,66 +720,252 @@ def _reconstruct_chunk(
                     gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
                 )
         # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
-        if member:
-            o = coff[cid] + _CF * nt
-            for r in range(n_e):
-                for s in range(r + 1):
-                    mred[r, s] = cflt[o + r * n_e + s]
-            o += n_e * n_e
+        if refine:
+            for p in range(nt):
+                corig[p, 0] = crhs[p, 0]
+                corig[p, 1] = crhs[p, 1]
+        if not shared:
             for p in range(nt):
                 for r in range(cstart[p], n_e):
-                    cmat[p, r] = cflt[o + p * n_e + r]
-            o += nt * n_e
-            for p in range(nt):
-                for q in range(p + 1):
-                    smat[p, q] = cflt[o + p * nt + q]
-            _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, 0, 2)
-        else:
+                    cmat2[p, r] = cmat[p, r]
+        # one factorisation for both columns, or one per membrane (column counts are
+        # runtime values: one compiled specialisation of the solvers, not one per literal)
+        ncol = 2 if shared else 1
+        for c0 in range(0, 2, ncol):
+            mr = mred if c0 == 0 else mred2
+            cm = cmat if c0 == 0 else cmat2
+            sm = smat if c0 == 0 else smat2
+            _reduced_factor(mr, cm, sm, cstart, n_e, nt, interior)
+            if store and cid >= 0:
+                _class_store(
+                    cid,
+                    nt,
+                    n_e,
+                    max_nt,
+                    cstart,
+                    emap,
+                    kmat,
+                    arow,
+                    tloc,
+                    binv,
+                    areas,
+                    mred,
+                    cmat,
+                    smat,
+                    cint,
+                    cflt,
+                    coff,
+                )
+                break
+            _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, c0, c0 + ncol)
             if refine:
-                for p in range(nt):
-                    corig[p, 0] = crhs[p, 0]
-                    corig[p, 1] = crhs[p, 1]
-            if not shared:
-                for p in range(nt):
-                    for r in range(cstart[p], n_e):
-                        cmat2[p, r] = cmat[p, r]
-            # one factorisation for both columns, or one per membrane (column counts are
-            # runtime values: one compiled specialisation of the solvers, not one per literal)
-            ncol = 2 if shared else 1
-            for c0 in range(0, 2, ncol):
-                mr = mred if c0 == 0 else mred2
-                cm = cmat if c0 == 0 else cmat2
-                sm = smat if c0 == 0 else smat2
-                _reduced_factor(mr, cm, sm, cstart, n_e, nt, interior)
-                if store and cid >= 0:
-                    _class_store(
-                        cid,
-                        nt,
-                        n_e,
-                        max_nt,
-                        cstart,
-                        emap,
-                        kmat,
-                        arow,
-                        tloc,
-                        binv,
-                        areas,
-                        mred,
-                        cmat,
-                        smat,
-                        cint,
-                        cflt,
-                        coff,
-                    )
-                    break
-                _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, c0, c0 + ncol)
-                if refine:
-                    for c in range(c0, c0 + ncol):
-                        _refine_balance(
-                            mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c
-                        )
-            if store:
-                continue
+                for c in range(c0, c0 + ncol):
+                    _refine_balance(mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c)
+        if store:
+            continue
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            for c in range(2):
+                z0 = beta[p, 0, c]
+                z1 = beta[p, 1, c]
+                for j in range(6):
+                    pj = emap[p, j]
+                    if pj >= 0:
+                        sj = fred[pj, c]
+                        z0 -= kmat[p, 0, j] * sj
+                        z1 -= kmat[p, 1, j] * sj
+                        out[c, t, j] += sj
+                out[c, t, 6] += z0
+                out[c, t, 7] += z1
+
+
+@jit
+def _member_chunk(
+    order,
+    k0,
+    k1,
+    vertices,
+    triangles,
+    diameters,
+    tri_edges,
+    edge_tris,
+    boundary,
+    patch_ptr,
+    patch_triangles,
+    patch_local,
+    u1,
+    u2,
+    lam,
+    rho1,
+    rho2,
+    mu1,
+    mu2,
+    f1c,
+    f2c,
+    load1,
+    load2,
+    redist,
+    gamma,
+    chi_row,
+    chi_mom,
+    max_nt,
+    out,
+    cls,
+    cint,
+    cflt,
+    coff,
+):
+    """Solve the patch problems of the class members among ``order[k0:k1]`` from their storage.
+
+    Arguments as :func:`_reconstruct_chunk` (constant tensions).  For a vertex
+    of class c the edge dofs, the bubble elimination (K, A, B^-1, the balance
+    row's bubble part), tau of the patch vertex and the factors of M' and of
+    the Schur complement come from the storage that :func:`_class_store`
+    wrote for c's representative; the right-hand sides and the solves are
+    computed here with the same operations as in the patch kernel, so every
+    member's sigma^a has the bits it would have there.
+    """
+    wnt = max_nt
+    wne = 6 * max_nt
+    emap = np.empty((wnt, 6), dtype=np.int64)
+    cstart = np.empty(wnt, dtype=np.int64)
+    kmat = np.empty((wnt, 2, 6))
+    beta = np.empty((wnt, 2, 2))
+    mred = np.empty((wne, wne))
+    fred = np.empty((wne, 3))
+    cmat = np.empty((wnt, wne))
+    crhs = np.empty((wnt, 2))
+    smat = np.empty((wnt, wnt))
+    gloc = np.empty((3, 2))
+    kapj = np.empty(3)
+    glued = chi_row.shape[0] == triangles.shape[0]
+    m1 = mu1[0]
+    m2 = mu2[0]
+    # the two columns as runtime values: literal arguments would compile another
+    # specialisation of _reduced_solve than the patch kernel's
+    cols = np.empty(2, dtype=np.int64)
+    cols[0] = 0
+    cols[1] = 2
+    for k in range(k0, k1):
+        a = order[k]
+        cid = cls[a]
+        if cid < 0:
+            continue
+        pstart = patch_ptr[a]
+        nt = patch_ptr[a + 1] - pstart
+        interior = not boundary[a]
+        n_e = cint[cid, 1]
+        for p in range(nt):
+            for r in range(6):
+                emap[p, r] = cint[cid, 2 + max_nt + 6 * p + r]
+        for r in range(n_e):
+            fred[r, 0] = 0.0
+            fred[r, 1] = 0.0
+        r1a = 0.0 if not interior else rho1[a]
+        r2a = 0.0 if not interior else rho2[a]
+        lam_a = 0.0 if not interior else lam[a]
+        redist_a = interior and redist.shape[0] > 1 and redist[a]
+        gam = gamma[a] if redist_a else 0.0
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            i = patch_local[pstart + p]
+            i0 = triangles[t, 0]
+            i1 = triangles[t, 1]
+            i2 = triangles[t, 2]
+            o = coff[cid] + _CF * p  # K (12), A (12), tau (16), B^-1 (4), balance (2), area
+            area = cflt[o + 46]
+            du1x, du1y, du2x, du2y, gax, gay = _gradients(
+                i,
+                vertices[i0, 0],
+                vertices[i0, 1],
+                vertices[i1, 0],
+                vertices[i1, 1],
+                vertices[i2, 0],
+                vertices[i2, 1],
+                u1,
+                u2,
+                i0,
+                i1,
+                i2,
+                0.5 / area,
+            )
+            _patch_loads(
+                i,
+                t,
+                area,
+                m1,
+                m2,
+                du1x,
+                du1y,
+                du2x,
+                du2y,
+                gax,
+                gay,
+                f1c,
+                f2c,
+                load1,
+                load2,
+                chi_row,
+                chi_mom,
+                glued,
+                r1a,
+                r2a,
+                lam_a,
+                redist_a,
+                gam,
+                gloc,
+                kapj,
+            )
+            c00 = cflt[o + 40]
+            c01 = cflt[o + 41]
+            c10 = cflt[o + 42]
+            c11 = cflt[o + 43]
+            sb0 = cflt[o + 44]
+            sb1 = cflt[o + 45]
+            for c in range(2):
+                beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
+                beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
+            tb10 = -m1 * (du1x * cflt[o + 30] + du1y * cflt[o + 38])
+            tb11 = -m1 * (du1x * cflt[o + 31] + du1y * cflt[o + 39])
+            tb20 = -m2 * (du2x * cflt[o + 30] + du2y * cflt[o + 38])
+            tb21 = -m2 * (du2x * cflt[o + 31] + du2y * cflt[o + 39])
+            st = n_e
+            for r in range(6):
+                k0r = cflt[o + r]
+                k1r = cflt[o + 6 + r]
+                kmat[p, 0, r] = k0r
+                kmat[p, 1, r] = k1r
+                pr = emap[p, r]
+                if pr < 0:
+                    continue
+                if pr < st:
+                    st = pr
+                a0 = cflt[o + 12 + r]
+                a1 = cflt[o + 18 + r]
+                te1 = -m1 * (du1x * cflt[o + 24 + r] + du1y * cflt[o + 32 + r])
+                te2 = -m2 * (du2x * cflt[o + 24 + r] + du2y * cflt[o + 32 + r])
+                fe1 = te1 - k0r * tb10 - k1r * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
+                fe2 = te2 - k0r * tb20 - k1r * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
+                fred[pr, 0] += fe1  # the weights are mu_K0 / mu_K = 1
+                fred[pr, 1] += fe2
+            cstart[p] = st
+            for c in range(2):
+                crhs[p, c] = (
+                    gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
+                )
+        o = coff[cid] + _CF * nt  # the factors: M' (n_e x n_e), Y^T (nt x n_e), S (nt x nt)
+        for r in range(n_e):
+            for s in range(r + 1):
+                mred[r, s] = cflt[o + r * n_e + s]
+        o += n_e * n_e
+        for p in range(nt):
+            for r in range(cstart[p], n_e):
+                cmat[p, r] = cflt[o + p * n_e + r]
+        o += nt * n_e
+        for p in range(nt):
+            for q in range(p + 1):
+                smat[p, q] = cflt[o + p * nt + q]
+        _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, cols[0], cols[1])
         for p in range(nt):
             t = patch_triangles[pstart + p]
             for c in range(2):
@@ -1329,8 +1551,12 @@ def reconstruct_colored(
         cflt = np.zeros(1)
         coff = np.zeros(1, dtype=np.int64)
 
+    members = cls.shape[0] > 1
+
     def patches(k0, k1):
         _reconstruct_chunk(order, k0, k1, *args, cls, cint, cflt, coff, False)
+        if members:
+            _member_chunk(order, k0, k1, *args, cls, cint, cflt, coff)
 
     for c in range(color_ptr.shape[0] - 1):
         lo = int(color_ptr[c])

@@ -45,6 +45,7 @@ def test_precompile_compiles_the_pipeline_specialisations():
     kernels = (
         kf._reconstruct_chunk,
         kf._reduced_factor,
+        kf._member_chunk,
         kf._reduced_solve,
         kf._refine_balance,
         kf._coefficients_chunk,
