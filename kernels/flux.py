@@ -1385,6 +1385,59 @@ def precompile(part: str) -> None:
         _refine_balance(a, a, a, a, a, cstart, 0, 0, a, np.zeros((0, 6), dtype=np.int64), a, 0)
         _reduced_factor(a, a, a, cstart, 0, 0, False)  # nothing to factor
         _reduced_solve(a, a, a, a, a, cstart, 0, 0, 0, 1)  # nothing to solve
+        # the patch kernel's other callees: the loads of one triangle (computed on
+        # scratch) and the class storage (nothing to store: no triangles)
+        m33 = np.zeros((1, 3, 3))
+        _patch_loads(
+            np.int8(0),
+            np.int32(0),
+            1.0,
+            1.0,
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            m33,
+            m33,
+            np.full(1, -1, dtype=np.int32),
+            m33,
+            False,
+            0.0,
+            0.0,
+            0.0,
+            False,
+            0.0,
+            np.zeros((3, 2)),
+            np.zeros(3),
+        )
+        w = np.zeros((0, 2, 6))
+        t8 = np.zeros((0, 2, 8))
+        e6 = np.zeros((0, 6), dtype=np.int64)
+        i2 = np.zeros((1, 1), dtype=np.int64)
+        _class_store(
+            0,
+            0,
+            0,
+            0,
+            cstart,
+            e6,
+            w,
+            w,
+            t8,
+            np.zeros((0, 6)),
+            np.zeros(0),
+            a,
+            a,
+            a,
+            i2,
+            np.zeros(1),
+            np.zeros(1, dtype=np.int64),
+        )
     elif part == "coefficients":
         _coefficients_chunk(vertices, triangles, diameters, coef, 0, 0)
     elif part == "estimators":

@@ -242,7 +242,13 @@ def after_the_caller(dispatcher):
 
 
 try:
-    for dispatcher in (flux._refine_balance, flux._reduced_factor, flux._reduced_solve):
+    for dispatcher in (
+        flux._refine_balance,
+        flux._reduced_factor,
+        flux._reduced_solve,
+        flux._patch_loads,
+        flux._class_store,
+    ):
         after_the_caller(dispatcher)
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass

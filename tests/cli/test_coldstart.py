@@ -46,6 +46,8 @@ def test_precompile_compiles_the_pipeline_specialisations():
         kf._reconstruct_chunk,
         kf._reduced_factor,
         kf._member_chunk,
+        kf._patch_loads,
+        kf._class_store,
         kf._reduced_solve,
         kf._refine_balance,
         kf._coefficients_chunk,
