@@ -1118,9 +1118,9 @@ def _patch_hash_range(geo, max_nt, stride, hashes, n_e, a0, a1):
 
     For k = a0..a1-1, written to ``hashes[k]``, ``n_e[k]`` (stride 1: every vertex).
 
-    A sum of the key's words times distinct odd constants (independent
-    multiplications, no dependency chain), then a final mix: a filter only,
-    equal keys are checked word by word afterwards (:func:`_verify_range`).
+    The sum of the key's words, each mixed with its position (independent
+    per word, no dependency chain): a filter only, equal keys are checked
+    word by word afterwards (:func:`_verify_range`).
     """
     key = np.empty(2 + 10 * max_nt)
     bits = key.view(np.uint64)
@@ -1128,13 +1128,16 @@ def _patch_hash_range(geo, max_nt, stride, hashes, n_e, a0, a1):
     for k in range(a0, a1):
         length, ne = _patch_key(stride * k, geo, edge_ids, key)
         h = np.uint64(0)
-        c = np.uint64(0x9E3779B97F4A7C15)
+        c = np.uint64(0)
         for j in range(length):
-            h += (bits[j] ^ (bits[j] >> np.uint64(29))) * c
-            c += np.uint64(0x632BE59BD9B4E01A)  # stays odd
-        h ^= h >> np.uint64(32)
-        h *= np.uint64(0xD6E8FEB86659FD93)
-        h ^= h >> np.uint64(32)
+            # each word with its position through the splitmix64 finaliser, then summed
+            # (independent per word); a plain weighted sum collided on dyadic keys,
+            # whose words differ only in their exponent bits
+            c += np.uint64(0x9E3779B97F4A7C15)
+            x = bits[j] + c
+            x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            h += x ^ (x >> np.uint64(31))
         hashes[k] = h
         n_e[k] = ne
 
@@ -1218,9 +1221,9 @@ CLASS_MIN_PATCHES = 4
 CLASS_MAX_FLOATS = 8_000_000
 #: the sample of vertices that decides whether to search (every (N / CLASS_SAMPLE)-th) ...
 CLASS_SAMPLE = 4096
-#: ... and the fraction of it whose patch must recur in the sample.  An adapted L-shape
-#: mesh (215k vertices, bisections of a dyadic mesh) had 615 classes covering 59 % of
-#: its vertices: the search took 0.2 s, the classes saved 0.1-0.2 s of a 0.7 s flux
+#: ... and the fraction of it whose patch must recur in the sample (a square: 99.5 %;
+#: an adapted L-shape mesh of 215k vertices: 97 %, and 715 classes cover 99.5 % of it;
+#: a mesh with coordinates that are not dyadic: none recur)
 CLASS_MIN_COVERAGE = 0.8
 
 
