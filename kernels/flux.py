@@ -205,49 +205,50 @@ def _upper_solve1(lo, b, n, c):
 
 
 @jit
-def _reduced_factor(mred, cmat, smat, cstart, n_e, nt, interior):
-    """Factor the reduced patch system ``M' s + C^T m = f``, ``C s = c`` in place.
+def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, c1, stage):
+    """Factor and solve ``M' s + C^T m = f``, ``C s = c`` in place, for the columns c0..c1-1.
 
-    On entry ``mred`` holds the lower triangle of M' and ``cmat`` the rows of C
-    (row p zero before ``cstart[p]``).  On exit ``mred`` holds the Cholesky
-    factor of M', ``cmat`` the rows of ``Y^T = (L^-1 C^T)^T`` and ``smat`` the
-    factor of the Schur complement ``Y^T Y`` (plus ``alpha 1 1^T`` for an
-    interior patch); the factors keep reciprocal diagonals
+    ``stage`` 0: factor, then solve; 1: factor only; 2: solve only, with the
+    factors already in place (a class member, :func:`_member_chunk`).  (One
+    function, not two: each compiled callee costs first-run compilation.)
+
+    Factoring: on entry ``mred`` holds the lower triangle of M' and ``cmat``
+    the rows of C (row p zero before ``cstart[p]``); on exit ``mred`` holds
+    the Cholesky factor of M', ``cmat`` the rows of ``Y^T = (L^-1 C^T)^T`` and
+    ``smat`` the factor of the Schur complement ``Y^T Y`` (plus ``alpha 1
+    1^T`` for an interior patch), with reciprocal diagonals
     (:func:`_cholesky`).  They depend on the geometry only: patches of one
     class share them (:func:`patch_classes`).
+
+    Solving: on entry ``fred[:, c]`` holds the right-hand sides f and
+    ``crhs[:, c]`` the data c (1 or 2 columns); on exit ``fred[:, c]`` holds s
+    and ``crhs[:, c]`` the multipliers.  With two columns both right-hand
+    sides share the factorisations.
     """
-    _cholesky(mred, n_e)
-    _forward_rows(mred, cmat, cstart, n_e, nt)  # rows of Y^T = (L^-1 C^T)^T
-    for p1 in range(nt):
-        s1 = cstart[p1]
-        for p2 in range(p1 + 1):
-            s = 0.0
-            for k in range(max(s1, cstart[p2]), n_e):
-                s += cmat[p1, k] * cmat[p2, k]
-            smat[p1, p2] = s
-    if interior:
-        # zero normal flux on the whole patch boundary: the flux balance rows
-        # sum to zero, S has the constants in its kernel and the data are
-        # compatible; any multiplier of the consistent system will do
-        tr = 0.0
-        for p in range(nt):
-            tr += smat[p, p]
-        alpha = tr / nt
+    if stage != 2:
+        _cholesky(mred, n_e)
+        _forward_rows(mred, cmat, cstart, n_e, nt)  # rows of Y^T = (L^-1 C^T)^T
         for p1 in range(nt):
+            s1 = cstart[p1]
             for p2 in range(p1 + 1):
-                smat[p1, p2] += alpha
-    _cholesky(smat, nt)
-
-
-@jit
-def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, c0, c1):
-    """Solve the reduced system factored by :func:`_reduced_factor` for columns c0..c1-1.
-
-    On entry ``fred[:, c]`` holds the right-hand sides f and ``crhs[:, c]`` the
-    data c (1 or 2 columns); on exit ``fred[:, c]`` holds s and ``crhs[:, c]``
-    the multipliers.  With two columns both right-hand sides share the
-    factorisations.
-    """
+                s = 0.0
+                for k in range(max(s1, cstart[p2]), n_e):
+                    s += cmat[p1, k] * cmat[p2, k]
+                smat[p1, p2] = s
+        if interior:
+            # zero normal flux on the whole patch boundary: the flux balance rows
+            # sum to zero, S has the constants in its kernel and the data are
+            # compatible; any multiplier of the consistent system will do
+            tr = 0.0
+            for p in range(nt):
+                tr += smat[p, p]
+            alpha = tr / nt
+            for p1 in range(nt):
+                for p2 in range(p1 + 1):
+                    smat[p1, p2] += alpha
+        _cholesky(smat, nt)
+    if stage == 1:
+        return
     two = c1 - c0 == 2
     if two:
         _lower_solve2(mred, fred, n_e)  # t = L^-1 f
@@ -378,7 +379,8 @@ def _patch_loads(
     """Write the data ``(g_i^a, lambda_j)_K`` of one patch triangle, contact load included, to gloc.
 
     Triangle t, where the patch vertex has local index i; ``kapj`` is scratch.
-    (Shared by the patch kernel and the class members' :func:`_member_chunk`.)
+    (The class members' :func:`_member_chunk`; the patch kernel has the same code
+    inline, which keeps its first-run compilation as it was.)
     """
     # data (g, lambda_j)
     dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
@@ -456,10 +458,6 @@ def _reconstruct_chunk(
     max_nt,
     out,
     cls,
-    cint,
-    cflt,
-    coff,
-    store,
 ):
     """Patch problems of the vertices ``order[k0:k1]`` (one colour class or part of one).
 
@@ -484,29 +482,22 @@ def _reconstruct_chunk(
     M', its factor and the Schur complement; otherwise membrane 2 gets its own
     (``mred2``, ``cmat2``, ``smat2``).
 
-    Patch classes (:func:`patch_classes`; constant tensions only): vertices
-    with ``cls[a] >= 0`` are skipped here and solved by :func:`_member_chunk`
-    from the class storage ``cint``, ``cflt``, ``coff``.  ``store``: the
-    vertices ``order[k0:k1]`` are class representatives; compute their
-    patches in full, write the class storage (:func:`_class_store`), add
-    nothing to ``out``.  ``cls`` of shape (1,): no classes.  (A separate
-    kernel for the members: the patch kernel, which every first run
-    compiles, stays as large as it was; the members' kernel compiles only
-    for meshes with classes.)
+    Patch classes (:func:`patch_classes`, constant tensions only): vertices
+    with ``cls[a] >= 0`` are skipped here, :func:`_member_chunk` solves them
+    from the class storage that :func:`_class_fill` wrote; ``cls`` of shape
+    (1,): no classes.  (Separate kernels: this one, which every first run
+    compiles, stays as it was; the others compile only for meshes with
+    classes.  A store mode in this kernel cost 1-1.5 s more first-run
+    compilation.)
     """
     per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
     classes = cls.shape[0] > 1 and not per_triangle
-    glued = chi_row.shape[0] == triangles.shape[0]
     wnt = max_nt  # workspace sizes: triangles of the largest patch
     wne = 6 * max_nt  # and a bound on its edge dofs (3 edges per triangle)
     edge_ids = np.empty(3 * wnt, dtype=np.int64)
     emap = np.empty((wnt, 6), dtype=np.int64)
     cstart = np.empty(wnt, dtype=np.int64)
     kmat = np.empty((wnt, 2, 6))
-    arow = np.empty((wnt, 2, 6))  # rows r of A = M_eb - K^T M_bb
-    binv = np.empty((wnt, 6))  # B^-1 (4), the flux balance row's bubble part (2)
-    tloc = np.empty((wnt, 2, 8))  # tau_i of the patch vertex (its local index i)
-    areas = np.empty(wnt)
     beta = np.empty((wnt, 2, 2))
     mred = np.empty((wne, wne))
     fred = np.empty((wne, 3))  # two right-hand sides and a scratch column
@@ -531,8 +522,7 @@ def _reconstruct_chunk(
         pstart = patch_ptr[a]
         nt = patch_ptr[a + 1] - pstart
         interior = not boundary[a]
-        cid = cls[a] if classes else -1
-        if cid >= 0 and not store:
+        if classes and cls[a] >= 0:
             continue  # a class member: _member_chunk
         # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
         shared = True
@@ -580,6 +570,8 @@ def _reconstruct_chunk(
                 emap[p, 2 * k + 1] = 2 * s + 1
         n_e = 2 * ne
         for r in range(n_e):
+            fred[r, 0] = 0.0
+            fred[r, 1] = 0.0
             for s in range(r + 1):
                 mred[r, s] = 0.0
         if not shared:
@@ -589,9 +581,6 @@ def _reconstruct_chunk(
         for p in range(nt):
             for r in range(n_e):
                 cmat[p, r] = 0.0
-        for r in range(n_e):
-            fred[r, 0] = 0.0
-            fred[r, 1] = 0.0
         r1a = 0.0 if not interior else rho1[a]
         r2a = 0.0 if not interior else rho2[a]
         lam_a = 0.0 if not interior else lam[a]
@@ -619,67 +608,72 @@ def _reconstruct_chunk(
             # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
             w1 = mu1_0 / m1
             w2 = w1 if shared else mu2_0 / m2
-            _patch_loads(
-                i,
-                t,
-                area,
-                m1,
-                m2,
-                du1x,
-                du1y,
-                du2x,
-                du2y,
-                gax,
-                gay,
-                f1c,
-                f2c,
-                load1,
-                load2,
-                chi_row,
-                chi_mom,
-                glued,
-                r1a,
-                r2a,
-                lam_a,
-                redist_a,
-                gam,
-                gloc,
-                kapj,
-            )
+            # data (g, lambda_j)
+            dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
+            dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
+            for j in range(3):
+                mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
+                if load1.shape[0] == 1:
+                    l1 = f1c * mij
+                else:
+                    l1 = load1[t, i, j]
+                if load2.shape[0] == 1:
+                    l2 = f2c * mij
+                else:
+                    l2 = load2[t, i, j]
+                if chi_row.shape[0] == triangles.shape[0]:
+                    # glued contact load on this triangle: (chi^a, lambda_j) moves
+                    # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
+                    s_chi = chi_row[t]
+                    if s_chi >= 0:
+                        l1 += chi_mom[s_chi, i, j]
+                        l2 -= chi_mom[s_chi, i, j]
+                gloc[j, 0] = l1 - dot1 - r1a * mij
+                gloc[j, 1] = l2 - dot2 - r2a * mij
+                # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
+                kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
+            if redist_a:
+                # redistributed contact load (fastmem.estimators.flux.contact_redistribution): the
+                # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
+                # negative vertex values cut to 0, plus gamma_a m_K psi_a
+                ssum = kapj[0] + kapj[1] + kapj[2]
+                scale = 12.0 / area
+                n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
+                n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
+                n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
+                nsum = n0 + n1 + n2
+                # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
+                gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
+                kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
+                kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
+                kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
+            for j in range(3):
+                gloc[j, 0] += kapj[j]
+                gloc[j, 1] -= kapj[j]
             # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
             b00 = div[1, 6]
             b01 = div[1, 7]
             b10 = div[2, 6]
             b11 = div[2, 7]
             idet = 1.0 / (b00 * b11 - b01 * b10)
-            binv[p, 0] = b11 * idet
-            binv[p, 1] = -b01 * idet
-            binv[p, 2] = -b10 * idet
-            binv[p, 3] = b00 * idet
+            c00 = b11 * idet
+            c01 = -b01 * idet
+            c10 = -b10 * idet
+            c11 = b00 * idet
             for r in range(6):
-                kmat[p, 0, r] = binv[p, 0] * div[1, r] + binv[p, 1] * div[2, r]
-                kmat[p, 1, r] = binv[p, 2] * div[1, r] + binv[p, 3] * div[2, r]
-            # flux balance row: sum of the three divergence rows (bubbles eliminated)
-            binv[p, 4] = div[0, 6] + div[1, 6] + div[2, 6]
-            binv[p, 5] = div[0, 7] + div[1, 7] + div[2, 7]
-            for r in range(8):
-                tloc[p, 0, r] = tau[i, 0, r]
-                tloc[p, 1, r] = tau[i, 1, r]
-            areas[p] = area
-            c00 = binv[p, 0]
-            c01 = binv[p, 1]
-            c10 = binv[p, 2]
-            c11 = binv[p, 3]
-            sb0 = binv[p, 4]
-            sb1 = binv[p, 5]
+                kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
+                kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
             for c in range(2):
                 beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
                 beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
             # flux target -(tau, v) of the bubbles (tau = mu psi_a grad u)
-            tb10 = -m1 * (du1x * tloc[p, 0, 6] + du1y * tloc[p, 1, 6])
-            tb11 = -m1 * (du1x * tloc[p, 0, 7] + du1y * tloc[p, 1, 7])
-            tb20 = -m2 * (du2x * tloc[p, 0, 6] + du2y * tloc[p, 1, 6])
-            tb21 = -m2 * (du2x * tloc[p, 0, 7] + du2y * tloc[p, 1, 7])
+            tb10 = -m1 * (du1x * tau[i, 0, 6] + du1y * tau[i, 1, 6])
+            tb11 = -m1 * (du1x * tau[i, 0, 7] + du1y * tau[i, 1, 7])
+            tb20 = -m2 * (du2x * tau[i, 0, 6] + du2y * tau[i, 1, 6])
+            tb21 = -m2 * (du2x * tau[i, 0, 7] + du2y * tau[i, 1, 7])
+            # flux balance row: sum of the three divergence rows (bubbles eliminated)
+            sb0 = div[0, 6] + div[1, 6] + div[2, 6]
+            sb1 = div[0, 7] + div[1, 7] + div[2, 7]
             st = n_e
             for r in range(6):
                 pr = emap[p, r]
@@ -692,12 +686,10 @@ def _reconstruct_chunk(
                 cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
                 crow[p, r] = cmat[p, pr]
                 # A = M_eb - K^T M_bb (row r)
-                arow[p, 0, r] = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
-                arow[p, 1, r] = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
-                a0 = arow[p, 0, r]
-                a1 = arow[p, 1, r]
-                te1 = -m1 * (du1x * tloc[p, 0, r] + du1y * tloc[p, 1, r])
-                te2 = -m2 * (du2x * tloc[p, 0, r] + du2y * tloc[p, 1, r])
+                a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
+                a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
+                te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
+                te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
                 fe1 = te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
                 fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
                 fred[pr, 0] += w1 * fe1
@@ -735,34 +727,11 @@ def _reconstruct_chunk(
             mr = mred if c0 == 0 else mred2
             cm = cmat if c0 == 0 else cmat2
             sm = smat if c0 == 0 else smat2
-            _reduced_factor(mr, cm, sm, cstart, n_e, nt, interior)
-            if store and cid >= 0:
-                _class_store(
-                    cid,
-                    nt,
-                    n_e,
-                    max_nt,
-                    cstart,
-                    emap,
-                    kmat,
-                    arow,
-                    tloc,
-                    binv,
-                    areas,
-                    mred,
-                    cmat,
-                    smat,
-                    cint,
-                    cflt,
-                    coff,
-                )
-                break
-            _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, c0, c0 + ncol)
+            # stage 0: factor and solve (a runtime value: a literal compiles another specialisation)
+            _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, interior, c0, c0 + ncol, 0 * c0)
             if refine:
                 for c in range(c0, c0 + ncol):
                     _refine_balance(mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c)
-        if store:
-            continue
         for p in range(nt):
             t = patch_triangles[pstart + p]
             for c in range(2):
@@ -777,6 +746,186 @@ def _reconstruct_chunk(
                         out[c, t, j] += sj
                 out[c, t, 6] += z0
                 out[c, t, 7] += z1
+
+
+@jit
+def _class_fill(
+    reps,
+    vertices,
+    triangles,
+    diameters,
+    tri_edges,
+    edge_tris,
+    boundary,
+    patch_ptr,
+    patch_triangles,
+    patch_local,
+    max_nt,
+    cint,
+    cflt,
+    coff,
+    c0,
+    c1,
+):
+    """Factor the patch problems of the class representatives ``reps[c0:c1]``; store them.
+
+    The geometric part of :func:`_reconstruct_chunk` for constant tensions
+    (edge dofs, local matrices, bubble elimination, M', C, both factors), with
+    the same operations in the same order, written to class c's storage by
+    :func:`_class_store`; :func:`_member_chunk` adds the right-hand sides.
+    (Its own kernel, compiled only for meshes with classes: see
+    :func:`_reconstruct_chunk`.)
+    """
+    wnt = max_nt
+    wne = 6 * max_nt
+    edge_ids = np.empty(3 * wnt, dtype=np.int64)
+    emap = np.empty((wnt, 6), dtype=np.int64)
+    cstart = np.empty(wnt, dtype=np.int64)
+    kmat = np.empty((wnt, 2, 6))
+    arow = np.empty((wnt, 2, 6))  # rows r of A = M_eb - K^T M_bb
+    binv = np.empty((wnt, 6))  # B^-1 (4), the flux balance row's bubble part (2)
+    tloc = np.empty((wnt, 2, 8))  # tau of the patch vertex (its local index i)
+    areas = np.empty(wnt)
+    mred = np.empty((wne, wne))
+    fred = np.empty((wne, 3))  # unused (factor only)
+    cmat = np.empty((wnt, wne))
+    crhs = np.empty((wnt, 2))
+    smat = np.empty((wnt, wnt))
+    mass = np.empty((8, 8))
+    div = np.empty((3, 8))
+    tau = np.empty((3, 2, 8))
+    # columns 0..2, stage 1 (factor only), as runtime values: literal arguments would
+    # compile another specialisation of _reduced_solve than the patch kernel's
+    cols = np.empty(3, dtype=np.int64)
+    cols[0] = 0
+    cols[1] = 2
+    cols[2] = 1
+    for c in range(c0, c1):
+        a = reps[c]
+        pstart = patch_ptr[a]
+        nt = patch_ptr[a + 1] - pstart
+        interior = not boundary[a]
+        # --- patch edges with dofs (as in _reconstruct_chunk)
+        ne = 0
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            i = patch_local[pstart + p]
+            for k in range(3):
+                e = tri_edges[t, k]
+                on_bnd = edge_tris[e, 1] < 0
+                if k == i and not (on_bnd and not interior):
+                    emap[p, 2 * k] = -1
+                    emap[p, 2 * k + 1] = -1
+                    continue
+                s = -1
+                for q in range(ne):
+                    if edge_ids[q] == e:
+                        s = q
+                        break
+                if s < 0:
+                    edge_ids[ne] = e
+                    s = ne
+                    ne += 1
+                emap[p, 2 * k] = 2 * s
+                emap[p, 2 * k + 1] = 2 * s + 1
+        n_e = 2 * ne
+        for r in range(n_e):
+            for s in range(r + 1):
+                mred[r, s] = 0.0
+        for p in range(nt):
+            for r in range(n_e):
+                cmat[p, r] = 0.0
+        for p in range(nt):
+            t = patch_triangles[pstart + p]
+            i = patch_local[pstart + p]
+            i0 = triangles[t, 0]
+            i1 = triangles[t, 1]
+            i2 = triangles[t, 2]
+            areas[p] = rt1_local_xy(
+                vertices[i0, 0],
+                vertices[i0, 1],
+                vertices[i1, 0],
+                vertices[i1, 1],
+                vertices[i2, 0],
+                vertices[i2, 1],
+                i0,
+                i1,
+                i2,
+                diameters[t],
+                mass,
+                div,
+                tau,
+            )
+            # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
+            b00 = div[1, 6]
+            b01 = div[1, 7]
+            b10 = div[2, 6]
+            b11 = div[2, 7]
+            idet = 1.0 / (b00 * b11 - b01 * b10)
+            c00 = b11 * idet
+            c01 = -b01 * idet
+            c10 = -b10 * idet
+            c11 = b00 * idet
+            binv[p, 0] = c00
+            binv[p, 1] = c01
+            binv[p, 2] = c10
+            binv[p, 3] = c11
+            for r in range(6):
+                kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
+                kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
+            sb0 = div[0, 6] + div[1, 6] + div[2, 6]
+            sb1 = div[0, 7] + div[1, 7] + div[2, 7]
+            binv[p, 4] = sb0
+            binv[p, 5] = sb1
+            for r in range(8):
+                tloc[p, 0, r] = tau[i, 0, r]
+                tloc[p, 1, r] = tau[i, 1, r]
+            st = n_e
+            for r in range(6):
+                pr = emap[p, r]
+                if pr < 0:
+                    continue
+                if pr < st:
+                    st = pr
+                k0 = kmat[p, 0, r]
+                k1 = kmat[p, 1, r]
+                cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
+                a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
+                a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
+                arow[p, 0, r] = a0
+                arow[p, 1, r] = a1
+                for s in range(6):
+                    ps = emap[p, s]
+                    if ps >= 0 and ps <= pr:
+                        mm = (
+                            mass[r, s]
+                            - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
+                            - (mass[s, 6] * k0 + mass[s, 7] * k1)
+                        )
+                        mred[pr, ps] += 1.0 * mm  # the weight mu_K0 / mu_K = 1
+            cstart[p] = st
+        _reduced_solve(
+            mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, cols[0], cols[1], cols[2]
+        )
+        _class_store(
+            c,
+            nt,
+            n_e,
+            max_nt,
+            cstart,
+            emap,
+            kmat,
+            arow,
+            tloc,
+            binv,
+            areas,
+            mred,
+            cmat,
+            smat,
+            cint,
+            cflt,
+            coff,
+        )
 
 
 @jit
@@ -843,9 +992,10 @@ def _member_chunk(
     m2 = mu2[0]
     # the two columns as runtime values: literal arguments would compile another
     # specialisation of _reduced_solve than the patch kernel's
-    cols = np.empty(2, dtype=np.int64)
+    cols = np.empty(3, dtype=np.int64)
     cols[0] = 0
     cols[1] = 2
+    cols[2] = 2  # solve only
     for k in range(k0, k1):
         a = order[k]
         cid = cls[a]
@@ -965,7 +1115,9 @@ def _member_chunk(
         for p in range(nt):
             for q in range(p + 1):
                 smat[p, q] = cflt[o + p * nt + q]
-        _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, cols[0], cols[1])
+        _reduced_solve(
+            mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, cols[0], cols[1], cols[2]
+        )
         for p in range(nt):
             t = patch_triangles[pstart + p]
             for c in range(2):
@@ -1377,70 +1529,12 @@ def precompile(part: str) -> None:
             1,
             coef,
             np.full(1, -1, dtype=np.int32),
-            np.zeros((1, 1), dtype=np.int64),
-            np.zeros(1),
-            np.zeros(1, dtype=np.int64),
-            False,
         )
     elif part == "solvers":
         a = np.zeros((0, 3))
         cstart = np.zeros(0, dtype=np.int64)
         _refine_balance(a, a, a, a, a, cstart, 0, 0, a, np.zeros((0, 6), dtype=np.int64), a, 0)
-        _reduced_factor(a, a, a, cstart, 0, 0, False)  # nothing to factor
-        _reduced_solve(a, a, a, a, a, cstart, 0, 0, 0, 1)  # nothing to solve
-        # the patch kernel's other callees: the loads of one triangle (computed on
-        # scratch) and the class storage (nothing to store: no triangles)
-        m33 = np.zeros((1, 3, 3))
-        _patch_loads(
-            np.int8(0),
-            np.int32(0),
-            1.0,
-            1.0,
-            1.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            0.0,
-            m33,
-            m33,
-            np.full(1, -1, dtype=np.int32),
-            m33,
-            False,
-            0.0,
-            0.0,
-            0.0,
-            False,
-            0.0,
-            np.zeros((3, 2)),
-            np.zeros(3),
-        )
-        w = np.zeros((0, 2, 6))
-        t8 = np.zeros((0, 2, 8))
-        e6 = np.zeros((0, 6), dtype=np.int64)
-        i2 = np.zeros((1, 1), dtype=np.int64)
-        _class_store(
-            0,
-            0,
-            0,
-            0,
-            cstart,
-            e6,
-            w,
-            w,
-            t8,
-            np.zeros((0, 6)),
-            np.zeros(0),
-            a,
-            a,
-            a,
-            i2,
-            np.zeros(1),
-            np.zeros(1, dtype=np.int64),
-        )
+        _reduced_solve(a, a, a, a, a, cstart, 0, 0, False, 0, 1, 0)  # nothing to solve
     elif part == "coefficients":
         _coefficients_chunk(vertices, triangles, diameters, coef, 0, 0)
     elif part == "estimators":
@@ -1595,12 +1689,12 @@ def reconstruct_colored(
     )
     if classes is not None and mu1.shape[0] == 1 and mu2.shape[0] == 1:
         cls, reps, cint, cflt, coff = classes
-        if cint[0, 0] == 0:  # fill the storage: the representatives, each in full
+        if cint[0, 0] == 0:  # fill the storage: the representatives' factors
 
-            def store(k0, k1):
-                _reconstruct_chunk(reps, k0, k1, *args, cls, cint, cflt, coff, True)
+            def fill(k0, k1):
+                _class_fill(reps, *args[:9], int(max_nt), cint, cflt, coff, k0, k1)
 
-            _par.run_ranges(store, _par.ranges(reps.shape[0], threads, 8))
+            _par.run_ranges(fill, _par.ranges(reps.shape[0], threads, 8))
     else:
         cls = np.full(1, -1, dtype=np.int32)
         cint = np.zeros((1, 1), dtype=np.int64)
@@ -1610,7 +1704,7 @@ def reconstruct_colored(
     members = cls.shape[0] > 1
 
     def patches(k0, k1):
-        _reconstruct_chunk(order, k0, k1, *args, cls, cint, cflt, coff, False)
+        _reconstruct_chunk(order, k0, k1, *args, cls)
         if members:
             _member_chunk(order, k0, k1, *args, cls, cint, cflt, coff)
 

@@ -242,13 +242,7 @@ def after_the_caller(dispatcher):
 
 
 try:
-    for dispatcher in (
-        flux._refine_balance,
-        flux._reduced_factor,
-        flux._reduced_solve,
-        flux._patch_loads,
-        flux._class_store,
-    ):
+    for dispatcher in (flux._refine_balance, flux._reduced_solve):
         after_the_caller(dispatcher)
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass

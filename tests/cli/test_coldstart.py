@@ -44,9 +44,9 @@ def test_precompile_compiles_the_pipeline_specialisations():
         bound.flux_terms(scene, res.u1, res.u2, fluxes)
     kernels = (
         kf._reconstruct_chunk,
-        kf._reduced_factor,
         kf._member_chunk,
         kf._patch_loads,
+        kf._class_fill,
         kf._class_store,
         kf._reduced_solve,
         kf._refine_balance,
