@@ -42,7 +42,7 @@ from numba.core.dispatcher import Dispatcher
 
 from .. import kernels
 from ..errors import ParameterError, checked_keywords
-from ..estimators.flux import find_patch_classes
+from ..estimators.flux import find_patch_classes, reconstruct
 from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, sums, topology
@@ -346,13 +346,17 @@ def _precompile_sums() -> None:
 
 
 def _precompile_classes() -> None:
-    """Compile the patch-class search of the flux (meshes of 20,000 vertices and more).
+    """Compile the patch classes of the flux (meshes of 20,000 vertices and more).
 
-    :func:`fastmem.estimators.flux.patch_classes` runs it only on such meshes, which the
-    tiny solves do not reach; here it runs on a 4 x 4 square's arrays (one class of
-    nine interior patches), with the types a solve passes.
+    :func:`fastmem.estimators.flux.patch_classes` searches them only on such meshes,
+    which the tiny solves do not reach: here the search runs on a 16 x 16 square (a
+    few classes cover its vertices), set on the mesh, and one reconstruction with
+    them compiles the class kernels with the types a solve passes.
     """
-    find_patch_classes(Mesh.square(4))
+    mesh = Mesh.square(16)
+    mesh._cache["patch_classes"] = find_patch_classes(mesh)
+    zero = np.zeros(mesh.n_vertices)
+    reconstruct(Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), zero, zero, zero)
 
 
 def _precompile_cycles(large: bool) -> None:

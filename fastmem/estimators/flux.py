@@ -158,9 +158,13 @@ def patch_classes(mesh, mu1, mu2):
     classes (and the factors stored in them on first use) are cached on the
     mesh.
     """
-    if np.ndim(mu1) or np.ndim(mu2) or mesh.n_vertices < PATCH_CLASS_MIN_VERTICES:
+    if np.ndim(mu1) or np.ndim(mu2):
         return None
     cache = mesh._cache
+    if "patch_classes" in cache:  # (fastmem.warm_up sets them on a small mesh)
+        return cache["patch_classes"]
+    if mesh.n_vertices < PATCH_CLASS_MIN_VERTICES:
+        return None
     if "patch_classes" not in cache:
         cache["patch_classes"] = find_patch_classes(mesh)
     return cache["patch_classes"]
