@@ -20,6 +20,7 @@ from .pool import parallel_for
 
 __all__ = [
     "area2_and_diameter2",
+    "quadrature_points",
     "gather_csr",
     "mass_csr",
     "stiffness_csr",
@@ -47,6 +48,39 @@ def area2_and_diameter2(vertices, triangles):
     h2 = np.empty(m)
     parallel_for(_area2_and_diameter2_range, m, vertices, triangles, area2, h2)
     return area2, h2
+
+
+def quadrature_points(vertices, triangles, bary, parallel=True):
+    """Physical quadrature points ``x[k, q] = sum_j bary[q, j] x_(triangles[k, j])``, and y.
+
+    One pass over the triangles in parallel chunks, no temporaries (the NumPy
+    gather ``vertices[triangles]`` and two products took 1.4 s of a 7 s
+    manufactured-scene estimate at n = 1024, cProfile).  Returns two float64
+    (M, nq) arrays.  ``parallel=False``: in the calling thread only (a caller
+    whose other thread is busy, :func:`fastmem.fem.callables.integrals`).
+    """
+    m = triangles.shape[0]
+    x = np.empty((m, bary.shape[0]))
+    y = np.empty((m, bary.shape[0]))
+    if parallel:
+        parallel_for(_quadrature_points_range, m, vertices, triangles, bary, x, y)
+    else:
+        _quadrature_points_range(0, m, vertices, triangles, bary, x, y)
+    return x, y
+
+
+@jit
+def _quadrature_points_range(lo, hi, vertices, triangles, bary, x, y):
+    nq = bary.shape[0]
+    for k in range(lo, hi):
+        i0, i1, i2 = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+        x0, y0 = vertices[i0, 0], vertices[i0, 1]
+        x1, y1 = vertices[i1, 0], vertices[i1, 1]
+        x2, y2 = vertices[i2, 0], vertices[i2, 1]
+        for q in range(nq):
+            b0, b1, b2 = bary[q, 0], bary[q, 1], bary[q, 2]
+            x[k, q] = b0 * x0 + b1 * x1 + b2 * x2
+            y[k, q] = b0 * y0 + b1 * y1 + b2 * y2
 
 
 @jit

@@ -115,7 +115,10 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
     try:
         for start in range(0, m, BLOCK):
             stop = min(start + BLOCK, m)
-            x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary)
+            # with the pool integrating the previous block, the points in this thread alone
+            x, y = quadrature_points(
+                mesh.vertices, mesh.triangles[start:stop], bary, parallel=pool is None
+            )
             fv = evaluate_callable(f, x, y, name)  # (m_b, nq)
             del x, y
             if pool is None:

@@ -46,6 +46,7 @@ import numpy as np
 from scipy.special import roots_jacobi, roots_legendre
 
 from ..errors import DataError, ParameterError
+from ..kernels import assembly as _ka
 
 __all__ = ["MAX_DEGREE", "quadrature_points", "triangle_rule"]
 
@@ -190,7 +191,7 @@ def triangle_rule(degree: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def quadrature_points(
-    vertices: np.ndarray, triangles: np.ndarray, bary: np.ndarray
+    vertices: np.ndarray, triangles: np.ndarray, bary: np.ndarray, parallel: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Map barycentric quadrature points to the physical points of every triangle.
 
@@ -203,6 +204,8 @@ def quadrature_points(
     bary : ndarray of shape (nq, 3)
         Barycentric coordinates of the quadrature points, as returned by
         :func:`triangle_rule`.
+    parallel : bool
+        Use the worker threads (default); ``False``: the calling thread only.
 
     Returns
     -------
@@ -238,7 +241,11 @@ def quadrature_points(
             f"triangles reference vertices outside [0, {vertices.shape[0] - 1}] "
             f"(indices {int(triangles.min())} .. {int(triangles.max())})"
         )
-    corners = vertices[triangles]  # (M, 3, 2)
-    x = corners[:, :, 0] @ bary.T
-    y = corners[:, :, 1] @ bary.T
-    return x, y
+    # one parallel pass (fastmem.kernels.assembly.quadrature_points), on the dtypes
+    # the solver's arrays have: one compiled specialisation
+    return _ka.quadrature_points(
+        np.ascontiguousarray(vertices, dtype=np.float64),
+        np.ascontiguousarray(triangles, dtype=np.int64),
+        np.ascontiguousarray(bary, dtype=np.float64),
+        parallel=bool(parallel),
+    )

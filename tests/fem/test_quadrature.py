@@ -213,6 +213,26 @@ def test_quadrature_points_match_per_triangle_mapping():
         assert_allclose(y[m], expected[:, 1], rtol=0, atol=1e-15)
 
 
+def test_quadrature_points_kernel_matches_numpy_in_chunks():
+    """The threaded kernel against the NumPy gather-and-product, serial and in chunks."""
+    import fastmem as fm
+
+    mesh = fm.Mesh.square(96)  # 18,432 triangles: several chunks per thread
+    rng = np.random.default_rng(5)
+    vertices = mesh.vertices + rng.uniform(-1e-3, 1e-3, size=mesh.vertices.shape)
+    bary, _ = triangle_rule(7)
+    corners = vertices[mesh.triangles]
+    for parallel in (True, False):
+        x, y = quadrature_points(vertices, mesh.triangles, bary, parallel=parallel)
+        assert_allclose(x, corners[:, :, 0] @ bary.T, rtol=0, atol=4e-16)
+        assert_allclose(y, corners[:, :, 1] @ bary.T, rtol=0, atol=4e-16)
+    # int32 indices and a slice give the same points
+    part = mesh.triangles[100:5000].astype(np.int32)
+    xs, ys = quadrature_points(vertices, part, bary)
+    assert np.array_equal(xs, x[100:5000])
+    assert np.array_equal(ys, y[100:5000])
+
+
 def test_quadrature_points_integrate_over_a_mesh():
     """Sum of the rule over a triangulated square gives the exact monomial integrals."""
     n = 3
