@@ -346,7 +346,7 @@ def _precompile_sums() -> None:
 
 
 def _precompile_classes() -> None:
-    """Compile the patch classes of the flux (meshes of 20,000 vertices and more).
+    """Compile the patch classes of the flux (meshes of 100,000 vertices and more).
 
     :func:`fastmem.estimators.flux.patch_classes` searches them only on such meshes,
     which the tiny solves do not reach: here the search runs on a 16 x 16 square (a
@@ -411,8 +411,8 @@ def warm_up(
         vertices: the active-set matrices are then built by the threaded kernels
         of :mod:`fastmem.kernels.masked`, nested iteration takes the geometric
         multigrid (:mod:`fastmem.kernels.mg`) and the flux reconstruction looks
-        for patch classes (:func:`fastmem.kernels.flux.patch_classes`; also with
-        ``adaptive``), which the tiny solves do not reach.
+        for patch classes (:func:`fastmem.kernels.flux.patch_classes`, from
+        100,000 vertices on), which the tiny solves do not reach.
 
     Returns
     -------
@@ -448,8 +448,8 @@ def warm_up(
         _precompile_masked()
         if uses_flux:
             _precompile_sums()
-    if uses_flux and (large or adaptive):
-        _precompile_classes()  # meshes of 20,000 vertices and more (adaptive: the later ones)
+    if uses_flux and large:
+        _precompile_classes()  # meshes of 100,000 vertices and more
     if adaptive:
         mesh = Mesh.lshape(4)
     elif unstructured:

@@ -125,8 +125,10 @@ def _coloring(mesh):
 
 
 #: meshes from this many vertices on look for patch classes (reused patch factorisations,
-#: :func:`fastmem.kernels.flux.patch_classes`); below, the search costs more than it saves
-PATCH_CLASS_MIN_VERTICES = 20_000
+#: :func:`fastmem.kernels.flux.patch_classes`).  Below, a flux takes a few tenths of a
+#: second and the classes save about half of it, while their kernels cost a first run
+#: 10-20 s of compilation (an adaptive test reaching 34k vertices: 36 s cold instead of 15)
+PATCH_CLASS_MIN_VERTICES = 100_000
 
 
 def patch_arrays(mesh) -> tuple:

@@ -16,7 +16,7 @@ import fastmem.estimators.flux as flux
 
 @pytest.fixture
 def always(monkeypatch):
-    """Classes on every mesh (the solver uses them from 20,000 vertices on)."""
+    """Classes on every mesh (the solver uses them from 100,000 vertices on)."""
     monkeypatch.setattr(flux, "PATCH_CLASS_MIN_VERTICES", 0)
 
 
