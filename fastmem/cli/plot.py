@@ -31,6 +31,7 @@ window is asked for (``show=True``, ``fastmem plot --show``).
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import sys
@@ -750,7 +751,11 @@ def _suptitle(result) -> str:
 
 
 def _image_format(path: Path, fig) -> str:
-    """Return the image format selected by the suffix of ``path`` (PNG without a suffix)."""
+    """Return the image format selected by the suffix of ``path`` (PNG without a suffix).
+
+    Called before anything is drawn: it also refuses a ``path`` whose folder does not
+    exist (:class:`FileNotFoundError`), so that a mistyped folder costs no drawing.
+    """
     fmt = path.suffix[1:].lower() or "png"
     supported = fig.canvas.get_supported_filetypes()
     if fmt not in supported:
@@ -758,6 +763,10 @@ def _image_format(path: Path, fig) -> str:
             f"cannot save plot as {path}: image format {fmt!r} is not supported; "
             f"use one of {', '.join('.' + s for s in sorted(supported))}"
         )
+    folder = path.parent
+    if not folder.is_dir():
+        what = "is not a folder" if folder.exists() else "does not exist"
+        raise FileNotFoundError(errno.ENOENT, f"its folder {folder} {what}", str(path))
     return fmt
 
 

@@ -155,8 +155,12 @@ def test_plot_result_bad_suffix(exact, tmp_path):
 
 
 def test_plot_result_missing_folder(exact, tmp_path):
-    with pytest.raises(OSError):  # noqa: PT011 - whatever the OS says
+    """A missing folder is refused before anything is drawn, naming the folder."""
+    with pytest.raises(FileNotFoundError, match=r"its folder .*nope does not exist"):
         plot.plot_result(exact, tmp_path / "nope" / "fig.png")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(FileNotFoundError, match=r"its folder .*file is not a folder"):
+        plot.plot_result(exact, tmp_path / "file" / "fig.png")
 
 
 def test_plot_result_show_uses_pyplot(exact, tmp_path, monkeypatch):
@@ -522,7 +526,10 @@ def test_cli_bad_output(archive, tmp_path, capsys):
     assert plot.run_plot(parse(["plot", str(archive), "-o", str(out)])) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
-    assert captured.err.startswith(f"fastmem: error: cannot write {out}: ")
+    assert (
+        captured.err
+        == f"fastmem: error: cannot write {out}: its folder {out.parent} does not exist\n"
+    )
     assert captured.err.count("\n") == 1
 
 

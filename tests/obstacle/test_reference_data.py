@@ -482,9 +482,9 @@ def test_twosided_interpolant_error_is_first_order():
 
 def test_interval_helpers_give_exact_ranges():
     rng = np.random.default_rng(SEED + 5)
-    a = rng.uniform(-1.5, 1.5, (2, 2000))
+    a = rng.uniform(-1.5, 1.5, (2, 500))
     lo, hi = a.min(axis=0), a.max(axis=0)
-    b = rng.uniform(-1.5, 1.5, (2, 2000))
+    b = rng.uniform(-1.5, 1.5, (2, 500))
     blo, bhi = b.min(axis=0), b.max(axis=0)
     t = lo[:, None] + (hi - lo)[:, None] * np.linspace(0.0, 1.0, 2001)
     s = blo[:, None] + (bhi - blo)[:, None] * np.linspace(0.0, 1.0, 41)
@@ -499,7 +499,7 @@ def test_interval_helpers_give_exact_ranges():
         assert_allclose(rlo, vals.min(axis=1), atol=1e-6)  # sharp
         assert_allclose(rhi, vals.max(axis=1), atol=1e-6)
     # sup of lambda_max over a box of symmetric matrices is attained at the corner
-    a_hi, c_hi, b_abs = rng.normal(size=(3, 500))
+    a_hi, c_hi, b_abs = rng.normal(size=(3, 200))
     b_abs = np.abs(b_abs)
     best = _lam_max_brute(a_hi, c_hi, b_abs)
     assert_allclose(twosided._lam_max_sup(a_hi, c_hi, b_abs), best, rtol=1e-12, atol=1e-12)

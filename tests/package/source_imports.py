@@ -4,6 +4,7 @@ the cycle test (test_imports.py) and the layer rules (test_layout.py)."""
 from __future__ import annotations
 
 import ast
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +39,17 @@ class Statement:
 
 
 def statements(name, path) -> list:
-    """Every import statement of module ``name`` (source ``path``), also inside functions."""
+    """Every import statement of module ``name`` (source ``path``), also inside functions.
+
+    Each file is parsed once per test session (four tests read every file's imports);
+    a file that changes on disk is parsed again.
+    """
+    stat = Path(path).stat()
+    return list(_statements(name, str(path), stat.st_mtime_ns, stat.st_size))
+
+
+@functools.cache
+def _statements(name, path, mtime_ns, size) -> tuple:
     source = Path(path).read_text(encoding="utf-8")
     lines = source.splitlines()
     tree = ast.parse(source, filename=str(path))
@@ -63,4 +74,4 @@ def statements(name, path) -> list:
             base = ".".join([*parts[: len(parts) - node.level + 1], *filter(None, [base])])
         names = tuple(alias.name for alias in node.names)
         out.append(Statement(node.lineno, base, names, inner, text))
-    return out
+    return tuple(out)

@@ -252,7 +252,10 @@ def test_warm_up_counts_kernels():
     assert int(first) >= 10  # the default pipeline uses about 15 kernels
     assert int(second) == 0
     assert timed == "True"
+
+
+def test_warm_up_names_a_bad_method():
     from fastmem.cli.warmup import warm_up
 
-    with pytest.raises(errors.ParameterError, match="method"):
+    with pytest.raises(errors.ParameterError, match="method must be one of .* got 'magic'"):
         warm_up("magic")

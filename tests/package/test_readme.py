@@ -67,12 +67,10 @@ def _cli_commands() -> list[list[str]]:
     return commands
 
 
-def test_readme_cli_commands_run_in_order(tmp_path, monkeypatch, capsys):
-    """Every ``fastmem ...`` line of the README's shell blocks, in order, in one folder."""
+def _run_in_order(commands, tmp_path, monkeypatch, capsys) -> int:
+    """Run ``fastmem`` command lines in order in one folder; return how many ran."""
     from fastmem.cli.main import main
 
-    commands = _cli_commands()
-    assert len(commands) >= 5
     monkeypatch.chdir(tmp_path)
     has_plot = importlib.util.find_spec("matplotlib") is not None
     has_dask = all(importlib.util.find_spec(m) for m in ("dask", "distributed", "pandas"))
@@ -88,8 +86,28 @@ def test_readme_cli_commands_run_in_order(tmp_path, monkeypatch, capsys):
             continue  # the plot of that study (tests/sweeps/test_sweep.py runs one)
         assert main(argv) == 0, argv
         ran += 1
-    assert ran >= 5
     assert "error:" not in capsys.readouterr().err
+    return ran
+
+
+def _is_twophase(argv) -> bool:
+    return argv[0] == "twophase" or (argv[0] == "info" and argv[1].startswith("twophase"))
+
+
+def test_readme_cli_commands_run_in_order(tmp_path, monkeypatch, capsys):
+    """Every ``fastmem ...`` line of the README's shell blocks but the two-phase ones, in
+    order, in one folder (the two-phase lines: the next test, a slow one)."""
+    commands = [argv for argv in _cli_commands() if not _is_twophase(argv)]
+    assert len(commands) >= 5
+    assert _run_in_order(commands, tmp_path, monkeypatch, capsys) >= 5
+
+
+def test_readme_twophase_commands_run_in_order(tmp_path, monkeypatch, capsys):
+    """The README's two-phase command lines, in order, in one folder (about 13 s: slow;
+    tests/twophase/test_twophase_cli.py runs the same subcommands on small cases)."""
+    commands = [argv for argv in _cli_commands() if _is_twophase(argv)]
+    assert len(commands) >= 4
+    assert _run_in_order(commands, tmp_path, monkeypatch, capsys) >= 3
 
 
 _LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")

@@ -176,7 +176,9 @@ def _system(prob, steps):
 
 
 def test_cpr_needs_far_fewer_iterations_than_block_ilu_in_2d():
-    prob = section(200, 20)
+    """On a 120 x 12 section after 4 steps: 142 block-ILU iterations against 8 CPR ones
+    (379 against 9 on 200 x 20, 6 s: the gap grows with the section)."""
+    prob = section(120, 12)
     a, b, scales = _system(prob, 4)
     assert prob.gas(simulate(prob, t_end=4 * 5000 * YEAR, linear_solver="direct").final).any()
     its = {}
