@@ -12,8 +12,9 @@ from meshes import circle_mesh
 #: (issue 32); every layer keeps a fast test of the same property in the default run.
 SLOW = {
     "package/test_bench.py": 92.6,  # every benchmark's --quick run, in subprocesses
-    # the README's two-phase command lines (its other command lines stay in the default run)
-    "package/test_readme.py::test_readme_twophase_commands_run_in_order": 13.0,
+    # every command line of the README (its contact lines but the figures stay in the
+    # default run; tests/cli/test_plot.py draws the figures)
+    "package/test_readme.py::test_readme_every_cli_command_runs_in_order": 20.0,
     # 2026-12-02, the suite at 5 min 54 s - 6 min 3 s from a cold kernel cache: the patch
     # classes compile 15 s of kernels that no default-run mesh reaches (they start at
     # 100,000 vertices; the flux tests of the default run check the same fluxes without
