@@ -193,6 +193,25 @@ def peak_rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def first_touch_ms_per_mb(megabytes=256):
+    """Milliseconds per MiB to allocate and first write fresh memory (``np.ones``).
+
+    The cost of memory a process has not touched yet.  On an ordinary machine it is
+    ~0.1-0.3 ms/MiB (the kernel zeroes the pages).  On the 2-core machine of
+    2026-12-02 (a virtual machine) it measured 3-16 ms/MiB, varying from run to run:
+    there every solve that grows the process's memory pays this rate, which weighs on a
+    first solve more than on a second one and more than on the Poisson unit.  Call it
+    at the start of a benchmark process, before other work has grown its memory.
+    """
+    import numpy as np
+
+    t = time.perf_counter()
+    block = np.ones(int(megabytes) * (1 << 20) // 8)
+    seconds = time.perf_counter() - t
+    del block
+    return 1000.0 * seconds / megabytes
+
+
 def current_rss_mb():
     """Current resident memory of this process (Linux /proc; None elsewhere)."""
     try:

@@ -37,7 +37,16 @@ import io
 import pstats
 import time
 
-from bench._common import current_rss_mb, finish, parse, parser, peak_rss_mb, poisson_unit, progress
+from bench._common import (
+    current_rss_mb,
+    finish,
+    first_touch_ms_per_mb,
+    parse,
+    parser,
+    peak_rss_mb,
+    poisson_unit,
+    progress,
+)
 
 QUICK_SIZES = [64]
 FULL_SIZES = [2048]
@@ -203,7 +212,10 @@ def main(argv=None):
     sizes = args.sizes or (QUICK_SIZES if args.quick else FULL_SIZES)
     most = numba.config.NUMBA_NUM_THREADS
     threads = sorted({t for t in (args.threads or [1, 2, most]) if 1 <= t <= most})
+    touch = first_touch_ms_per_mb()  # before anything grows the process
+    progress(f"fresh memory: {touch:.2f} ms per MiB to allocate and first write")
     payload = {
+        "first_touch_ms_per_mib": touch,
         "parameters": {
             "sizes": sizes,
             "threads": threads,
