@@ -228,7 +228,6 @@ def _reset_after_fork():
     global _BSR_LOCK, _BSR_DEPTH, _BSR_ORIGINAL
     _BSR_LOCK = threading.Lock()
     if _BSR_DEPTH:
-
         _bsr_base.sum_duplicates = _BSR_ORIGINAL
     _BSR_DEPTH = 0
 
@@ -343,7 +342,7 @@ def precompile() -> None:
     """Compile (or load) the kernels of :class:`HybridGaussSeidel` and :class:`ThreadedCSR`.
 
     With the argument types of a solve (uint32 index views; the vector of a
-    product writable or read-only, as a Result's arrays are), on a 2 x 2 matrix:
+    product read-only, :func:`fastmem.linalg.sparse.read_only`), on a 2 x 2 matrix:
     the tiny problem of :func:`fastmem.warm_up` is below the sizes that use them.
     """
     a = sp.csr_matrix(np.array([[2.0, -1.0], [-1.0, 2.0]]))
@@ -353,8 +352,7 @@ def precompile() -> None:
     cross_block_dominant(indptr, indices, a.data, 2)
     frozen = np.ones(2)
     frozen.setflags(write=False)
-    for v in (b, frozen):
-        csr_matvec_range(0, 2, indptr, indices, a.data, v, x)
+    csr_matvec_range(0, 2, indptr, indices, a.data, frozen, x)
 
 
 def _sweeps_read_matrix_at_call(options: dict) -> bool:

@@ -41,7 +41,7 @@ from ..kernels import pool as _par
 from ..kernels.mg import MAX_ROW, galerkin_rows, galerkin_values, prolong_add_range, residual_range
 from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
 from .amg import amg_preconditioner, hybrid_blocks
-from .sparse import _unsigned, threaded
+from .sparse import _unsigned, read_only, threaded
 
 __all__ = ["COARSE_DENSE", "NestedChain", "NestedMG", "galerkin", "precompile"]
 
@@ -434,7 +434,7 @@ class NestedMG:
         pp, pi, pd, rp, ri, rd = self._transfer[lev]
         m = self.chain.p[lev].shape[1]
         bc = np.empty(m)
-        _par.parallel_for(csr_matvec_range, m, rp, ri, rd, r, bc)
+        _par.parallel_for(csr_matvec_range, m, rp, ri, rd, read_only(r), bc)
         del r
         xc = self._cycle(lev + 1, bc)
         keep = self._keep if lev == 0 else self._ones[lev - 1]
