@@ -150,6 +150,11 @@ def test_threaded_products_equal_scipys():
     frozen = x.copy()
     frozen.setflags(write=False)
     np.testing.assert_array_equal(t @ frozen, m @ x)
+    # writable and read-only vectors reach the kernel with one type: one specialisation
+    from fastmem.kernels.smooth import csr_matvec_range
+
+    assert len(csr_matvec_range.signatures) == 1, csr_matvec_range.signatures
+    assert x.flags.writeable  # the caller's vector is left writable
     np.testing.assert_array_equal(t @ x.reshape(-1, 1), m @ x.reshape(-1, 1))  # 2-D: scipy's
     np.testing.assert_array_equal(t.dot(x), m.dot(x))
     ints = np.arange(n)
