@@ -204,93 +204,106 @@ def _upper_solve1(lo, b, n, c):
         b[k, c] = s0 * lo[k, k]
 
 
-@jit
-def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, c1, stage):
-    """Factor and solve ``M' s + C^T m = f``, ``C s = c`` in place, for the columns c0..c1-1.
+def _reduced_solver(two):
+    """Build the solver :func:`_reduced_solve` for two columns (``two``) or one.
 
-    ``stage`` 0: factor, then solve; 1: factor only; 2: solve only, with the
-    factors already in place (a class member, :func:`_member_chunk`).  (One
-    function, not two: each compiled callee costs first-run compilation.)
-
-    Factoring: on entry ``mred`` holds the lower triangle of M' and ``cmat``
-    the rows of C (row p zero before ``cstart[p]``); on exit ``mred`` holds
-    the Cholesky factor of M', ``cmat`` the rows of ``Y^T = (L^-1 C^T)^T`` and
-    ``smat`` the factor of the Schur complement ``Y^T Y`` (plus ``alpha 1
-    1^T`` for an interior patch), with reciprocal diagonals
-    (:func:`_cholesky`).  They depend on the geometry only: patches of one
-    class share them (:func:`patch_classes`).
-
-    Solving: on entry ``fred[:, c]`` holds the right-hand sides f and
-    ``crhs[:, c]`` the data c (1 or 2 columns); on exit ``fred[:, c]`` holds s
-    and ``crhs[:, c]`` the multipliers.  With two columns both right-hand
-    sides share the factorisations.
+    ``two`` is a constant of the compiled code: Numba drops the other branch
+    before typing it, so each variant compiles only its own arithmetic (the
+    constant-tension kernels use two columns, the weighted one both).
     """
-    if stage != 2:
-        _cholesky(mred, n_e)
-        _forward_rows(mred, cmat, cstart, n_e, nt)  # rows of Y^T = (L^-1 C^T)^T
+
+    def _reduced_solve(mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, c1, stage):
+        """Factor and solve ``M' s + C^T m = f``, ``C s = c`` in place, for the columns c0..c1-1.
+
+        ``stage`` 0: factor, then solve; 1: factor only; 2: solve only, with the
+        factors already in place (a class member, :func:`_member_chunk`).  (One
+        function, not two: each compiled callee costs first-run compilation.)
+
+        Factoring: on entry ``mred`` holds the lower triangle of M' and ``cmat``
+        the rows of C (row p zero before ``cstart[p]``); on exit ``mred`` holds
+        the Cholesky factor of M', ``cmat`` the rows of ``Y^T = (L^-1 C^T)^T`` and
+        ``smat`` the factor of the Schur complement ``Y^T Y`` (plus ``alpha 1
+        1^T`` for an interior patch), with reciprocal diagonals
+        (:func:`_cholesky`).  They depend on the geometry only: patches of one
+        class share them (:func:`patch_classes`).
+
+        Solving: on entry ``fred[:, c]`` holds the right-hand sides f and
+        ``crhs[:, c]`` the data c (1 or 2 columns); on exit ``fred[:, c]`` holds s
+        and ``crhs[:, c]`` the multipliers.  With two columns both right-hand
+        sides share the factorisations.
+        """
+        if stage != 2:
+            _cholesky(mred, n_e)
+            _forward_rows(mred, cmat, cstart, n_e, nt)  # rows of Y^T = (L^-1 C^T)^T
+            for p1 in range(nt):
+                s1 = cstart[p1]
+                for p2 in range(p1 + 1):
+                    s = 0.0
+                    for k in range(max(s1, cstart[p2]), n_e):
+                        s += cmat[p1, k] * cmat[p2, k]
+                    smat[p1, p2] = s
+            if interior:
+                # zero normal flux on the whole patch boundary: the flux balance rows
+                # sum to zero, S has the constants in its kernel and the data are
+                # compatible; any multiplier of the consistent system will do
+                tr = 0.0
+                for p in range(nt):
+                    tr += smat[p, p]
+                alpha = tr / nt
+                for p1 in range(nt):
+                    for p2 in range(p1 + 1):
+                        smat[p1, p2] += alpha
+            _cholesky(smat, nt)
+        if stage == 1:
+            return
+        if two:
+            _lower_solve2(mred, fred, n_e)  # t = L^-1 f
+        else:
+            _lower_solve1(mred, fred, n_e, c0)
         for p1 in range(nt):
             s1 = cstart[p1]
-            for p2 in range(p1 + 1):
-                s = 0.0
-                for k in range(max(s1, cstart[p2]), n_e):
-                    s += cmat[p1, k] * cmat[p2, k]
-                smat[p1, p2] = s
-        if interior:
-            # zero normal flux on the whole patch boundary: the flux balance rows
-            # sum to zero, S has the constants in its kernel and the data are
-            # compatible; any multiplier of the consistent system will do
-            tr = 0.0
-            for p in range(nt):
-                tr += smat[p, p]
-            alpha = tr / nt
-            for p1 in range(nt):
-                for p2 in range(p1 + 1):
-                    smat[p1, p2] += alpha
-        _cholesky(smat, nt)
-    if stage == 1:
-        return
-    two = c1 - c0 == 2
-    if two:
-        _lower_solve2(mred, fred, n_e)  # t = L^-1 f
-    else:
-        _lower_solve1(mred, fred, n_e, c0)
-    for p1 in range(nt):
-        s1 = cstart[p1]
+            if two:
+                b0 = 0.0
+                b1 = 0.0
+                for k in range(s1, n_e):
+                    b0 += cmat[p1, k] * fred[k, 0]
+                    b1 += cmat[p1, k] * fred[k, 1]
+                crhs[p1, 0] = b0 - crhs[p1, 0]
+                crhs[p1, 1] = b1 - crhs[p1, 1]
+            else:
+                b0 = 0.0
+                for k in range(s1, n_e):
+                    b0 += cmat[p1, k] * fred[k, c0]
+                crhs[p1, c0] = b0 - crhs[p1, c0]
         if two:
-            b0 = 0.0
-            b1 = 0.0
-            for k in range(s1, n_e):
-                b0 += cmat[p1, k] * fred[k, 0]
-                b1 += cmat[p1, k] * fred[k, 1]
-            crhs[p1, 0] = b0 - crhs[p1, 0]
-            crhs[p1, 1] = b1 - crhs[p1, 1]
+            _lower_solve2(smat, crhs, nt)  # mu = S^-1 (Y^T t - c)
+            _upper_solve2(smat, crhs, nt)
         else:
-            b0 = 0.0
-            for k in range(s1, n_e):
-                b0 += cmat[p1, k] * fred[k, c0]
-            crhs[p1, c0] = b0 - crhs[p1, c0]
-    if two:
-        _lower_solve2(smat, crhs, nt)  # mu = S^-1 (Y^T t - c)
-        _upper_solve2(smat, crhs, nt)
-    else:
-        _lower_solve1(smat, crhs, nt, c0)
-        _upper_solve1(smat, crhs, nt, c0)
-    # --- sigma_e = L^-T (t - Y mu)
-    for p in range(nt):
+            _lower_solve1(smat, crhs, nt, c0)
+            _upper_solve1(smat, crhs, nt, c0)
+        # --- sigma_e = L^-T (t - Y mu)
+        for p in range(nt):
+            if two:
+                r0 = crhs[p, 0]
+                r1 = crhs[p, 1]
+                for k in range(cstart[p], n_e):
+                    fred[k, 0] -= cmat[p, k] * r0
+                    fred[k, 1] -= cmat[p, k] * r1
+            else:
+                r0 = crhs[p, c0]
+                for k in range(cstart[p], n_e):
+                    fred[k, c0] -= cmat[p, k] * r0
         if two:
-            r0 = crhs[p, 0]
-            r1 = crhs[p, 1]
-            for k in range(cstart[p], n_e):
-                fred[k, 0] -= cmat[p, k] * r0
-                fred[k, 1] -= cmat[p, k] * r1
+            _upper_solve2(mred, fred, n_e)
         else:
-            r0 = crhs[p, c0]
-            for k in range(cstart[p], n_e):
-                fred[k, c0] -= cmat[p, k] * r0
-    if two:
-        _upper_solve2(mred, fred, n_e)
-    else:
-        _upper_solve1(mred, fred, n_e, c0)
+            _upper_solve1(mred, fred, n_e, c0)
+
+    _reduced_solve.__name__ = _reduced_solve.__qualname__ = "_reduced_solve" + ("2" if two else "1")
+    return jit(_reduced_solve)
+
+
+_reduced_solve2 = _reduced_solver(True)
+_reduced_solve1 = _reduced_solver(False)
 
 
 @jit
@@ -426,326 +439,404 @@ def _patch_loads(
         gloc[j, 1] -= kapj[j]
 
 
-@jit
-def _reconstruct_chunk(
-    order,
-    k0,
-    k1,
-    vertices,
-    triangles,
-    diameters,
-    tri_edges,
-    edge_tris,
-    boundary,
-    patch_ptr,
-    patch_triangles,
-    patch_local,
-    u1,
-    u2,
-    lam,
-    rho1,
-    rho2,
-    mu1,
-    mu2,
-    f1c,
-    f2c,
-    load1,
-    load2,
-    redist,
-    gamma,
-    chi_row,
-    chi_mom,
-    max_nt,
-    out,
-    cls,
-):
-    """Patch problems of the vertices ``order[k0:k1]`` (one colour class or part of one).
+def _patch_kernel(weighted):
+    """Build the patch kernel :func:`_reconstruct_chunk`, for constant tensions or weighted.
 
-    For each vertex a: solve its patch problem and add the local dof values to
-    ``out`` (2, M, 8).  One workspace for the chunk (sized for ``max_nt``
-    triangles); no allocation and no array views inside the patch loop.  (One
-    function rather than a loop calling a patch solver: Numba re-optimises
-    every callee inside each caller, and this level cost 1.3 s of first-run
-    compilation.)
-
-    Reduced formulation (module docstring): per triangle the bubbles are
-    eliminated through two of the three divergence equations, leaving an SPD
-    problem on the patch edge dofs with one flux-balance constraint per
-    triangle.
-
-    Weights (docs/method.md §4, per-triangle tensions): membrane i minimises
-    ``sum_K w_iK ||tau + v||_K^2`` with ``w_iK = mu_i,K0 / mu_i,K`` (K0 the
-    first patch triangle; a constant factor does not change the minimiser),
-    so M' and the right-hand side of triangle K are scaled by w_iK.  When
-    ``w_1K = w_2K`` on the whole patch (always for constant tensions, where
-    both are 1 and the arithmetic is the unweighted one) the membranes share
-    M', its factor and the Schur complement; otherwise membrane 2 gets its own
-    (``mred2``, ``cmat2``, ``smat2``).
-
-    Patch classes (:func:`patch_classes`, constant tensions only): vertices
-    with ``cls[a] >= 0`` are skipped here, :func:`_member_chunk` solves them
-    from the class storage that :func:`_class_fill` wrote; ``cls`` of shape
-    (1,): no classes.  (Separate kernels: this one, which every first run
-    compiles, stays as it was; the others compile only for meshes with
-    classes.  A store mode in this kernel cost 1-1.5 s more first-run
-    compilation.)
+    ``weighted`` (per-triangle tensions) is a constant of the compiled code:
+    Numba drops the branches of the other case before typing them, so the
+    constant-tension kernel that every first run compiles carries none of the
+    weights, second factorisations and refinement steps, and a scene with
+    per-triangle tensions compiles its own kernel when it first needs it.  For
+    constant tensions the weights are exactly 1, so both kernels give the same
+    bits there.
     """
-    per_triangle = mu1.shape[0] != 1 or mu2.shape[0] != 1
-    classes = cls.shape[0] > 1 and not per_triangle
-    wnt = max_nt  # workspace sizes: triangles of the largest patch
-    wne = 6 * max_nt  # and a bound on its edge dofs (3 edges per triangle)
-    edge_ids = np.empty(3 * wnt, dtype=np.int64)
-    emap = np.empty((wnt, 6), dtype=np.int64)
-    cstart = np.empty(wnt, dtype=np.int64)
-    kmat = np.empty((wnt, 2, 6))
-    beta = np.empty((wnt, 2, 2))
-    mred = np.empty((wne, wne))
-    fred = np.empty((wne, 3))  # two right-hand sides and a scratch column
-    cmat = np.empty((wnt, wne))
-    crhs = np.empty((wnt, 2))
-    smat = np.empty((wnt, wnt))
-    # second factorisation, only for patches whose weights are not proportional
-    n2e = wne if per_triangle else 1
-    n2t = wnt if per_triangle else 1
-    mred2 = np.empty((n2e, n2e))
-    cmat2 = np.empty((n2t, n2e))
-    smat2 = np.empty((n2t, n2t))
-    crow = np.empty((wnt, 6))  # original rows of C, for the refinement step
-    corig = np.empty((wnt, 2))
-    mass = np.empty((8, 8))
-    div = np.empty((3, 8))
-    tau = np.empty((3, 2, 8))
-    gloc = np.empty((3, 2))
-    kapj = np.empty(3)
-    for k in range(k0, k1):
-        a = order[k]
-        pstart = patch_ptr[a]
-        nt = patch_ptr[a + 1] - pstart
-        interior = not boundary[a]
-        if classes and cls[a] >= 0:
-            continue  # a class member: _member_chunk
-        # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
-        shared = True
-        # contrast of the weights on the patch: beyond 1e3 one step of iterative
-        # refinement keeps the flux balance at round-off (_refine_balance)
-        refine = False
-        t0 = patch_triangles[pstart]
-        mu1_0 = mu1[0] if mu1.shape[0] == 1 else mu1[t0]
-        mu2_0 = mu2[0] if mu2.shape[0] == 1 else mu2[t0]
-        if mu1.shape[0] != 1 or mu2.shape[0] != 1:
-            lo1 = hi1 = lo2 = hi2 = 1.0
+
+    def _reconstruct_chunk(
+        order,
+        k0,
+        k1,
+        vertices,
+        triangles,
+        diameters,
+        tri_edges,
+        edge_tris,
+        boundary,
+        patch_ptr,
+        patch_triangles,
+        patch_local,
+        u1,
+        u2,
+        lam,
+        rho1,
+        rho2,
+        mu1,
+        mu2,
+        f1c,
+        f2c,
+        load1,
+        load2,
+        redist,
+        gamma,
+        chi_row,
+        chi_mom,
+        max_nt,
+        out,
+        cls,
+    ):
+        """Patch problems of the vertices ``order[k0:k1]`` (one colour class or part of one).
+
+        For each vertex a: solve its patch problem and add the local dof values to
+        ``out`` (2, M, 8).  One workspace for the chunk (sized for ``max_nt``
+        triangles); no allocation and no array views inside the patch loop.  (One
+        function rather than a loop calling a patch solver: Numba re-optimises
+        every callee inside each caller, and this level cost 1.3 s of first-run
+        compilation.)
+
+        Reduced formulation (module docstring): per triangle the bubbles are
+        eliminated through two of the three divergence equations, leaving an SPD
+        problem on the patch edge dofs with one flux-balance constraint per
+        triangle.
+
+        Weights (docs/method.md §4, per-triangle tensions): membrane i minimises
+        ``sum_K w_iK ||tau + v||_K^2`` with ``w_iK = mu_i,K0 / mu_i,K`` (K0 the
+        first patch triangle; a constant factor does not change the minimiser),
+        so M' and the right-hand side of triangle K are scaled by w_iK.  When
+        ``w_1K = w_2K`` on the whole patch (always for constant tensions, where
+        both are 1 and the arithmetic is the unweighted one) the membranes share
+        M', its factor and the Schur complement; otherwise membrane 2 gets its own
+        (``mred2``, ``cmat2``, ``smat2``).
+
+        Patch classes (:func:`patch_classes`, constant tensions only): vertices
+        with ``cls[a] >= 0`` are skipped here, :func:`_member_chunk` solves them
+        from the class storage that :func:`_class_fill` wrote; ``cls`` of shape
+        (1,): no classes.  (Separate kernels: this one, which every first run
+        compiles, stays as it was; the others compile only for meshes with
+        classes.  A store mode in this kernel cost 1-1.5 s more first-run
+        compilation.)
+        """
+        if weighted:
+            classes = False
+        else:
+            classes = cls.shape[0] > 1
+        wnt = max_nt  # workspace sizes: triangles of the largest patch
+        wne = 6 * max_nt  # and a bound on its edge dofs (3 edges per triangle)
+        edge_ids = np.empty(3 * wnt, dtype=np.int64)
+        emap = np.empty((wnt, 6), dtype=np.int64)
+        cstart = np.empty(wnt, dtype=np.int64)
+        kmat = np.empty((wnt, 2, 6))
+        beta = np.empty((wnt, 2, 2))
+        mred = np.empty((wne, wne))
+        fred = np.empty((wne, 3))  # two right-hand sides and a scratch column
+        cmat = np.empty((wnt, wne))
+        crhs = np.empty((wnt, 2))
+        smat = np.empty((wnt, wnt))
+        if weighted:
+            # second factorisation, only for patches whose weights are not proportional
+            mred2 = np.empty((wne, wne))
+            cmat2 = np.empty((wnt, wne))
+            smat2 = np.empty((wnt, wnt))
+            crow = np.empty((wnt, 6))  # original rows of C, for the refinement step
+            corig = np.empty((wnt, 2))
+        mass = np.empty((8, 8))
+        div = np.empty((3, 8))
+        tau = np.empty((3, 2, 8))
+        gloc = np.empty((3, 2))
+        kapj = np.empty(3)
+        for k in range(k0, k1):
+            a = order[k]
+            pstart = patch_ptr[a]
+            nt = patch_ptr[a + 1] - pstart
+            interior = not boundary[a]
+            if classes and cls[a] >= 0:
+                continue  # a class member: _member_chunk
+            if weighted:
+                # --- weights 1 / mu_i,K relative to the first patch triangle; shared factorisation?
+                shared = True
+                t0 = patch_triangles[pstart]
+                mu1_0 = mu1[0] if mu1.shape[0] == 1 else mu1[t0]
+                mu2_0 = mu2[0] if mu2.shape[0] == 1 else mu2[t0]
+                lo1 = hi1 = lo2 = hi2 = 1.0
+                for p in range(nt):
+                    t = patch_triangles[pstart + p]
+                    w1 = mu1_0 / (mu1[0] if mu1.shape[0] == 1 else mu1[t])
+                    w2 = mu2_0 / (mu2[0] if mu2.shape[0] == 1 else mu2[t])
+                    lo1 = min(lo1, w1)
+                    hi1 = max(hi1, w1)
+                    lo2 = min(lo2, w2)
+                    hi2 = max(hi2, w2)
+                    if abs(w1 - w2) > 1e-13 * max(w1, w2):
+                        shared = False
+                # contrast of the weights on the patch: beyond 1e3 one step of iterative
+                # refinement keeps the flux balance at round-off (_refine_balance)
+                refine = hi1 > 1e3 * lo1 or hi2 > 1e3 * lo2
+            # --- patch edges with dofs
+            ne = 0
             for p in range(nt):
                 t = patch_triangles[pstart + p]
-                w1 = mu1_0 / (mu1[0] if mu1.shape[0] == 1 else mu1[t])
-                w2 = mu2_0 / (mu2[0] if mu2.shape[0] == 1 else mu2[t])
-                lo1 = min(lo1, w1)
-                hi1 = max(hi1, w1)
-                lo2 = min(lo2, w2)
-                hi2 = max(hi2, w2)
-                if abs(w1 - w2) > 1e-13 * max(w1, w2):
-                    shared = False
-            refine = hi1 > 1e3 * lo1 or hi2 > 1e3 * lo2
-        # --- patch edges with dofs
-        ne = 0
-        for p in range(nt):
-            t = patch_triangles[pstart + p]
-            i = patch_local[pstart + p]
-            for k in range(3):
-                e = tri_edges[t, k]
-                on_bnd = edge_tris[e, 1] < 0
-                if k == i and not (on_bnd and not interior):
-                    emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
-                    emap[p, 2 * k + 1] = -1
-                    continue
-                s = -1
-                for q in range(ne):
-                    if edge_ids[q] == e:
-                        s = q
-                        break
-                if s < 0:
-                    edge_ids[ne] = e
-                    s = ne
-                    ne += 1
-                emap[p, 2 * k] = 2 * s
-                emap[p, 2 * k + 1] = 2 * s + 1
-        n_e = 2 * ne
-        for r in range(n_e):
-            fred[r, 0] = 0.0
-            fred[r, 1] = 0.0
-            for s in range(r + 1):
-                mred[r, s] = 0.0
-        if not shared:
+                i = patch_local[pstart + p]
+                for k in range(3):
+                    e = tri_edges[t, k]
+                    on_bnd = edge_tris[e, 1] < 0
+                    if k == i and not (on_bnd and not interior):
+                        emap[p, 2 * k] = -1  # zero normal flux on this patch-boundary edge
+                        emap[p, 2 * k + 1] = -1
+                        continue
+                    s = -1
+                    for q in range(ne):
+                        if edge_ids[q] == e:
+                            s = q
+                            break
+                    if s < 0:
+                        edge_ids[ne] = e
+                        s = ne
+                        ne += 1
+                    emap[p, 2 * k] = 2 * s
+                    emap[p, 2 * k + 1] = 2 * s + 1
+            n_e = 2 * ne
             for r in range(n_e):
+                fred[r, 0] = 0.0
+                fred[r, 1] = 0.0
                 for s in range(r + 1):
-                    mred2[r, s] = 0.0
-        for p in range(nt):
-            for r in range(n_e):
-                cmat[p, r] = 0.0
-        r1a = 0.0 if not interior else rho1[a]
-        r2a = 0.0 if not interior else rho2[a]
-        lam_a = 0.0 if not interior else lam[a]
-        redist_a = interior and redist.shape[0] > 1 and redist[a]
-        gam = gamma[a] if redist_a else 0.0
-        # --- per triangle: local matrices, bubble elimination, scatter
-        for p in range(nt):
-            t = patch_triangles[pstart + p]
-            i = patch_local[pstart + p]
-            i0 = triangles[t, 0]
-            i1 = triangles[t, 1]
-            i2 = triangles[t, 2]
-            x0 = vertices[i0, 0]
-            y0 = vertices[i0, 1]
-            x1 = vertices[i1, 0]
-            y1 = vertices[i1, 1]
-            x2 = vertices[i2, 0]
-            y2 = vertices[i2, 1]
-            area = rt1_local_xy(x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau)
-            du1x, du1y, du2x, du2y, gax, gay = _gradients(
-                i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, 0.5 / area
-            )
-            m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
-            m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
-            # weights of the patch norm: w_i = mu_i,K0 / mu_i,K (1 for constant tensions)
-            w1 = mu1_0 / m1
-            w2 = w1 if shared else mu2_0 / m2
-            # data (g, lambda_j)
-            dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
-            dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
-            for j in range(3):
-                mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
-                if load1.shape[0] == 1:
-                    l1 = f1c * mij
-                else:
-                    l1 = load1[t, i, j]
-                if load2.shape[0] == 1:
-                    l2 = f2c * mij
-                else:
-                    l2 = load2[t, i, j]
-                if chi_row.shape[0] == triangles.shape[0]:
-                    # glued contact load on this triangle: (chi^a, lambda_j) moves
-                    # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
-                    s_chi = chi_row[t]
-                    if s_chi >= 0:
-                        l1 += chi_mom[s_chi, i, j]
-                        l2 -= chi_mom[s_chi, i, j]
-                gloc[j, 0] = l1 - dot1 - r1a * mij
-                gloc[j, 1] = l2 - dot2 - r2a * mij
-                # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
-                kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
-            if redist_a:
-                # redistributed contact load (fastmem.estimators.flux.contact_redistribution): the
-                # L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
-                # negative vertex values cut to 0, plus gamma_a m_K psi_a
-                ssum = kapj[0] + kapj[1] + kapj[2]
-                scale = 12.0 / area
-                n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
-                n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
-                n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
-                nsum = n0 + n1 + n2
-                # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
-                gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
-                kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
-                kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
-                kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
-            for j in range(3):
-                gloc[j, 0] += kapj[j]
-                gloc[j, 1] -= kapj[j]
-            # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
-            b00 = div[1, 6]
-            b01 = div[1, 7]
-            b10 = div[2, 6]
-            b11 = div[2, 7]
-            idet = 1.0 / (b00 * b11 - b01 * b10)
-            c00 = b11 * idet
-            c01 = -b01 * idet
-            c10 = -b10 * idet
-            c11 = b00 * idet
-            for r in range(6):
-                kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
-                kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
-            for c in range(2):
-                beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
-                beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
-            # flux target -(tau, v) of the bubbles (tau = mu psi_a grad u)
-            tb10 = -m1 * (du1x * tau[i, 0, 6] + du1y * tau[i, 1, 6])
-            tb11 = -m1 * (du1x * tau[i, 0, 7] + du1y * tau[i, 1, 7])
-            tb20 = -m2 * (du2x * tau[i, 0, 6] + du2y * tau[i, 1, 6])
-            tb21 = -m2 * (du2x * tau[i, 0, 7] + du2y * tau[i, 1, 7])
-            # flux balance row: sum of the three divergence rows (bubbles eliminated)
-            sb0 = div[0, 6] + div[1, 6] + div[2, 6]
-            sb1 = div[0, 7] + div[1, 7] + div[2, 7]
-            st = n_e
-            for r in range(6):
-                pr = emap[p, r]
-                if pr < 0:
-                    continue
-                if pr < st:
-                    st = pr
-                k0 = kmat[p, 0, r]
-                k1 = kmat[p, 1, r]
-                cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
-                crow[p, r] = cmat[p, pr]
-                # A = M_eb - K^T M_bb (row r)
-                a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
-                a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
-                te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
-                te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
-                fe1 = te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
-                fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
-                fred[pr, 0] += w1 * fe1
-                fred[pr, 1] += w2 * fe2
-                # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K = M_ee - A K - K^T M_be
-                for s in range(6):
-                    ps = emap[p, s]
-                    if ps >= 0 and ps <= pr:
-                        mm = (
-                            mass[r, s]
-                            - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
-                            - (mass[s, 6] * k0 + mass[s, 7] * k1)
-                        )
-                        mred[pr, ps] += w1 * mm
-                        if not shared:
-                            mred2[pr, ps] += w2 * mm
-            cstart[p] = st
-            for c in range(2):
-                crhs[p, c] = (
-                    gloc[0, c] + gloc[1, c] + gloc[2, c] - sb0 * beta[p, 0, c] - sb1 * beta[p, 1, c]
+                    mred[r, s] = 0.0
+            if weighted:
+                if not shared:
+                    for r in range(n_e):
+                        for s in range(r + 1):
+                            mred2[r, s] = 0.0
+            for p in range(nt):
+                for r in range(n_e):
+                    cmat[p, r] = 0.0
+            r1a = 0.0 if not interior else rho1[a]
+            r2a = 0.0 if not interior else rho2[a]
+            lam_a = 0.0 if not interior else lam[a]
+            redist_a = interior and redist.shape[0] > 1 and redist[a]
+            gam = gamma[a] if redist_a else 0.0
+            # --- per triangle: local matrices, bubble elimination, scatter
+            for p in range(nt):
+                t = patch_triangles[pstart + p]
+                i = patch_local[pstart + p]
+                i0 = triangles[t, 0]
+                i1 = triangles[t, 1]
+                i2 = triangles[t, 2]
+                x0 = vertices[i0, 0]
+                y0 = vertices[i0, 1]
+                x1 = vertices[i1, 0]
+                y1 = vertices[i1, 1]
+                x2 = vertices[i2, 0]
+                y2 = vertices[i2, 1]
+                area = rt1_local_xy(
+                    x0, y0, x1, y1, x2, y2, i0, i1, i2, diameters[t], mass, div, tau
                 )
-        # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
-        if refine:
+                du1x, du1y, du2x, du2y, gax, gay = _gradients(
+                    i, x0, y0, x1, y1, x2, y2, u1, u2, i0, i1, i2, 0.5 / area
+                )
+                if weighted:
+                    m1 = mu1[0] if mu1.shape[0] == 1 else mu1[t]
+                    m2 = mu2[0] if mu2.shape[0] == 1 else mu2[t]
+                    # weights of the patch norm: w_i = mu_i,K0 / mu_i,K
+                    w1 = mu1_0 / m1
+                    w2 = w1 if shared else mu2_0 / m2
+                else:
+                    m1 = mu1[0]
+                    m2 = mu2[0]
+                # data (g, lambda_j)
+                dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
+                dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
+                for j in range(3):
+                    mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
+                    if load1.shape[0] == 1:
+                        l1 = f1c * mij
+                    else:
+                        l1 = load1[t, i, j]
+                    if load2.shape[0] == 1:
+                        l2 = f2c * mij
+                    else:
+                        l2 = load2[t, i, j]
+                    if chi_row.shape[0] == triangles.shape[0]:
+                        # glued contact load on this triangle: (chi^a, lambda_j) moves
+                        # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
+                        s_chi = chi_row[t]
+                        if s_chi >= 0:
+                            l1 += chi_mom[s_chi, i, j]
+                            l2 -= chi_mom[s_chi, i, j]
+                    gloc[j, 0] = l1 - dot1 - r1a * mij
+                    gloc[j, 1] = l2 - dot2 - r2a * mij
+                    # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
+                    kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
+                if redist_a:
+                    # redistributed contact load (fastmem.estimators.flux.contact_redistribution):
+                    # the L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
+                    # negative vertex values cut to 0, plus gamma_a m_K psi_a
+                    ssum = kapj[0] + kapj[1] + kapj[2]
+                    scale = 12.0 / area
+                    n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
+                    n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
+                    n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
+                    nsum = n0 + n1 + n2
+                    # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
+                    gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
+                    kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
+                    kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
+                    kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
+                for j in range(3):
+                    gloc[j, 0] += kapj[j]
+                    gloc[j, 1] -= kapj[j]
+                # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
+                b00 = div[1, 6]
+                b01 = div[1, 7]
+                b10 = div[2, 6]
+                b11 = div[2, 7]
+                idet = 1.0 / (b00 * b11 - b01 * b10)
+                c00 = b11 * idet
+                c01 = -b01 * idet
+                c10 = -b10 * idet
+                c11 = b00 * idet
+                for r in range(6):
+                    kmat[p, 0, r] = c00 * div[1, r] + c01 * div[2, r]
+                    kmat[p, 1, r] = c10 * div[1, r] + c11 * div[2, r]
+                for c in range(2):
+                    beta[p, 0, c] = c00 * gloc[1, c] + c01 * gloc[2, c]
+                    beta[p, 1, c] = c10 * gloc[1, c] + c11 * gloc[2, c]
+                # flux target -(tau, v) of the bubbles (tau = mu psi_a grad u)
+                tb10 = -m1 * (du1x * tau[i, 0, 6] + du1y * tau[i, 1, 6])
+                tb11 = -m1 * (du1x * tau[i, 0, 7] + du1y * tau[i, 1, 7])
+                tb20 = -m2 * (du2x * tau[i, 0, 6] + du2y * tau[i, 1, 6])
+                tb21 = -m2 * (du2x * tau[i, 0, 7] + du2y * tau[i, 1, 7])
+                # flux balance row: sum of the three divergence rows (bubbles eliminated)
+                sb0 = div[0, 6] + div[1, 6] + div[2, 6]
+                sb1 = div[0, 7] + div[1, 7] + div[2, 7]
+                st = n_e
+                for r in range(6):
+                    pr = emap[p, r]
+                    if pr < 0:
+                        continue
+                    if pr < st:
+                        st = pr
+                    k0 = kmat[p, 0, r]
+                    k1 = kmat[p, 1, r]
+                    cmat[p, pr] = div[0, r] + div[1, r] + div[2, r] - sb0 * k0 - sb1 * k1
+                    if weighted:
+                        crow[p, r] = cmat[p, pr]
+                    # A = M_eb - K^T M_bb (row r)
+                    a0 = mass[r, 6] - (k0 * mass[6, 6] + k1 * mass[7, 6])
+                    a1 = mass[r, 7] - (k0 * mass[6, 7] + k1 * mass[7, 7])
+                    te1 = -m1 * (du1x * tau[i, 0, r] + du1y * tau[i, 1, r])
+                    te2 = -m2 * (du2x * tau[i, 0, r] + du2y * tau[i, 1, r])
+                    fe1 = te1 - k0 * tb10 - k1 * tb11 - a0 * beta[p, 0, 0] - a1 * beta[p, 1, 0]
+                    fe2 = te2 - k0 * tb20 - k1 * tb21 - a0 * beta[p, 0, 1] - a1 * beta[p, 1, 1]
+                    if weighted:
+                        fred[pr, 0] += w1 * fe1
+                        fred[pr, 1] += w2 * fe2
+                    else:  # the weights are 1
+                        fred[pr, 0] += fe1
+                        fred[pr, 1] += fe2
+                    # reduced mass M' = M_ee - M_eb K - K^T M_be + K^T M_bb K
+                    #                = M_ee - A K - K^T M_be
+                    for s in range(6):
+                        ps = emap[p, s]
+                        if ps >= 0 and ps <= pr:
+                            mm = (
+                                mass[r, s]
+                                - (a0 * kmat[p, 0, s] + a1 * kmat[p, 1, s])
+                                - (mass[s, 6] * k0 + mass[s, 7] * k1)
+                            )
+                            if weighted:
+                                mred[pr, ps] += w1 * mm
+                                if not shared:
+                                    mred2[pr, ps] += w2 * mm
+                            else:
+                                mred[pr, ps] += mm
+                cstart[p] = st
+                for c in range(2):
+                    crhs[p, c] = (
+                        gloc[0, c]
+                        + gloc[1, c]
+                        + gloc[2, c]
+                        - sb0 * beta[p, 0, c]
+                        - sb1 * beta[p, 1, c]
+                    )
+            # --- M' sigma + C^T mu = f, C sigma = c: Cholesky of M', then of the Schur complement
+            # (the column counts and the stage are runtime values, never literals: a
+            # literal argument compiles another specialisation of the solver)
+            if weighted:
+                if refine:
+                    for p in range(nt):
+                        corig[p, 0] = crhs[p, 0]
+                        corig[p, 1] = crhs[p, 1]
+                if shared:  # one factorisation for both membranes
+                    for c0 in range(0, 2, 2):
+                        _reduced_solve2(
+                            mred,
+                            fred,
+                            cmat,
+                            crhs,
+                            smat,
+                            cstart,
+                            n_e,
+                            nt,
+                            interior,
+                            c0,
+                            c0 + 2,
+                            0 * c0,
+                        )
+                        if refine:
+                            for c in range(c0, c0 + 2):
+                                _refine_balance(
+                                    mred,
+                                    fred,
+                                    cmat,
+                                    crhs,
+                                    smat,
+                                    cstart,
+                                    n_e,
+                                    nt,
+                                    crow,
+                                    emap,
+                                    corig,
+                                    c,
+                                )
+                else:  # one per membrane
+                    for p in range(nt):
+                        for r in range(cstart[p], n_e):
+                            cmat2[p, r] = cmat[p, r]
+                    for c0 in range(2):
+                        mr = mred if c0 == 0 else mred2
+                        cm = cmat if c0 == 0 else cmat2
+                        sm = smat if c0 == 0 else smat2
+                        _reduced_solve1(
+                            mr, fred, cm, crhs, sm, cstart, n_e, nt, interior, c0, c0 + 1, 0 * c0
+                        )
+                        if refine:
+                            _refine_balance(
+                                mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c0
+                            )
+            else:
+                for c0 in range(0, 2, 2):
+                    _reduced_solve2(
+                        mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, c0, c0 + 2, 0 * c0
+                    )
             for p in range(nt):
-                corig[p, 0] = crhs[p, 0]
-                corig[p, 1] = crhs[p, 1]
-        if not shared:
-            for p in range(nt):
-                for r in range(cstart[p], n_e):
-                    cmat2[p, r] = cmat[p, r]
-        # one factorisation for both columns, or one per membrane (column counts are
-        # runtime values: one compiled specialisation of the solvers, not one per literal)
-        ncol = 2 if shared else 1
-        for c0 in range(0, 2, ncol):
-            mr = mred if c0 == 0 else mred2
-            cm = cmat if c0 == 0 else cmat2
-            sm = smat if c0 == 0 else smat2
-            # stage 0: factor and solve (a runtime value: a literal compiles another specialisation)
-            _reduced_solve(mr, fred, cm, crhs, sm, cstart, n_e, nt, interior, c0, c0 + ncol, 0 * c0)
-            if refine:
-                for c in range(c0, c0 + ncol):
-                    _refine_balance(mr, fred, cm, crhs, sm, cstart, n_e, nt, crow, emap, corig, c)
-        for p in range(nt):
-            t = patch_triangles[pstart + p]
-            for c in range(2):
-                z0 = beta[p, 0, c]
-                z1 = beta[p, 1, c]
-                for j in range(6):
-                    pj = emap[p, j]
-                    if pj >= 0:
-                        sj = fred[pj, c]
-                        z0 -= kmat[p, 0, j] * sj
-                        z1 -= kmat[p, 1, j] * sj
-                        out[c, t, j] += sj
-                out[c, t, 6] += z0
-                out[c, t, 7] += z1
+                t = patch_triangles[pstart + p]
+                for c in range(2):
+                    z0 = beta[p, 0, c]
+                    z1 = beta[p, 1, c]
+                    for j in range(6):
+                        pj = emap[p, j]
+                        if pj >= 0:
+                            sj = fred[pj, c]
+                            z0 -= kmat[p, 0, j] * sj
+                            z1 -= kmat[p, 1, j] * sj
+                            out[c, t, j] += sj
+                    out[c, t, 6] += z0
+                    out[c, t, 7] += z1
+
+    name = "_reconstruct_chunk_weighted" if weighted else "_reconstruct_chunk"
+    _reconstruct_chunk.__name__ = _reconstruct_chunk.__qualname__ = name
+    return jit(_reconstruct_chunk)
+
+
+_reconstruct_chunk = _patch_kernel(False)
+_reconstruct_chunk_weighted = _patch_kernel(True)
 
 
 @jit
@@ -795,7 +886,7 @@ def _class_fill(
     div = np.empty((3, 8))
     tau = np.empty((3, 2, 8))
     # columns 0..2, stage 1 (factor only), as runtime values: literal arguments would
-    # compile another specialisation of _reduced_solve than the patch kernel's
+    # compile another specialisation of _reduced_solve2 than the patch kernel's
     cols = np.empty(3, dtype=np.int64)
     cols[0] = 0
     cols[1] = 2
@@ -904,7 +995,7 @@ def _class_fill(
                         )
                         mred[pr, ps] += 1.0 * mm  # the weight mu_K0 / mu_K = 1
             cstart[p] = st
-        _reduced_solve(
+        _reduced_solve2(
             mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, cols[0], cols[1], cols[2]
         )
         _class_store(
@@ -991,7 +1082,7 @@ def _member_chunk(
     m1 = mu1[0]
     m2 = mu2[0]
     # the two columns as runtime values: literal arguments would compile another
-    # specialisation of _reduced_solve than the patch kernel's
+    # specialisation of _reduced_solve2 than the patch kernel's
     cols = np.empty(3, dtype=np.int64)
     cols[0] = 0
     cols[1] = 2
@@ -1115,7 +1206,7 @@ def _member_chunk(
         for p in range(nt):
             for q in range(p + 1):
                 smat[p, q] = cflt[o + p * nt + q]
-        _reduced_solve(
+        _reduced_solve2(
             mred, fred, cmat, crhs, smat, cstart, n_e, nt, interior, cols[0], cols[1], cols[2]
         )
         for p in range(nt):
@@ -1488,7 +1579,7 @@ def precompile(part: str) -> None:
     """Compile (or load from Numba's cache) one group of this module's kernels.
 
     ``part``: ``"patches"`` (the patch kernel and its callees, the bulk of the
-    compile time), ``"solvers"`` (the patch kernel's two largest callees),
+    compile time, constant tensions), ``"solvers"`` (its largest callee),
     ``"coefficients"`` or ``"estimators"``.  The kernels are
     called on empty ranges with arrays of exactly the types
     :func:`fastmem.estimators.flux.reconstruct` and :func:`fastmem.estimators.bound.flux_terms` pass
@@ -1533,8 +1624,7 @@ def precompile(part: str) -> None:
     elif part == "solvers":
         a = np.zeros((0, 3))
         cstart = np.zeros(0, dtype=np.int64)
-        _refine_balance(a, a, a, a, a, cstart, 0, 0, a, np.zeros((0, 6), dtype=np.int64), a, 0)
-        _reduced_solve(a, a, a, a, a, cstart, 0, 0, False, 0, 1, 0)  # nothing to solve
+        _reduced_solve2(a, a, a, a, a, cstart, 0, 0, False, 0, 2, 0)  # nothing to solve
     elif part == "coefficients":
         _coefficients_chunk(vertices, triangles, diameters, coef, 0, 0)
     elif part == "estimators":
@@ -1703,8 +1793,11 @@ def reconstruct_colored(
 
     members = cls.shape[0] > 1
 
+    weighted = mu1.shape[0] != 1 or mu2.shape[0] != 1
+    kernel = _reconstruct_chunk_weighted if weighted else _reconstruct_chunk
+
     def patches(k0, k1):
-        _reconstruct_chunk(order, k0, k1, *args, cls)
+        kernel(order, k0, k1, *args, cls)
         if members:
             _member_chunk(order, k0, k1, *args, cls, cint, cflt, coff)
 

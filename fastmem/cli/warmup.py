@@ -15,7 +15,7 @@ Compiling is single-threaded Python work in Numba, and the flux patch kernel
 is half of it.  With an empty cache and a second core, :func:`warm_up`
 therefore compiles that kernel in a helper process (it lands in Numba's
 on-disk cache) while it compiles everything else itself, starting with the
-patch kernel's two largest callees, which the helper then loads from the cache
+patch kernel's largest callee, which the helper then loads from the cache
 (if it gets there first, both compile them: slower, same result).
 ``fastmem run`` starts the helper before it builds its mesh.  The tiny
 solve waits for the helper only when it reaches the flux reconstruction, then
@@ -194,8 +194,8 @@ def _cpus() -> int:
 
 
 #: Python code the helper process runs (a module run with -m would be imported twice)
-#: (the coefficient pass first: meanwhile the caller compiles the two largest
-#: callees of the patch kernel, which the helper then finds in the cache; should
+#: (the coefficient pass first: meanwhile the caller compiles the largest
+#: callee of the patch kernel, which the helper then finds in the cache; should
 #: the patch kernel's typing reach them first, it waits for them, up to 5 s after
 #: the helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
 #: imports ``fastmem.kernels`` (numpy and numba only) without running
@@ -221,7 +221,7 @@ deadline = time.monotonic() + 5.0
 
 
 def after_the_caller(dispatcher):
-    # The caller compiles these callees of the patch kernel into the cache meanwhile:
+    # The caller compiles this callee of the patch kernel into the cache meanwhile:
     # when the patch kernel's typing reaches one before the caller has saved it (a
     # loaded machine), wait for the caller's save instead of compiling it twice.
     cache_file = dispatcher._cache._cache_file
@@ -242,8 +242,7 @@ def after_the_caller(dispatcher):
 
 
 try:
-    for dispatcher in (flux._refine_balance, flux._reduced_solve):
-        after_the_caller(dispatcher)
+    after_the_caller(flux._reduced_solve2)
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass
 flux.precompile("coefficients")
@@ -285,7 +284,7 @@ def start_compile_helper() -> bool:
     except Exception as err:  # noqa: BLE001 - no helper: compile here, as without it
         logger.debug("no compile helper process: %s", err)
         return False
-    # the patch kernel's two largest callees, here, while the helper imports
+    # the patch kernel's largest callee, here, while the helper imports
     # fastmem and compiles the coefficient pass: it then loads them from the cache
     flux.precompile("solvers")
     return True

@@ -44,11 +44,13 @@ def test_precompile_compiles_the_pipeline_specialisations():
         bound.flux_terms(scene, res.u1, res.u2, fluxes)
     kernels = (
         kf._reconstruct_chunk,
+        kf._reconstruct_chunk_weighted,
         kf._member_chunk,
         kf._patch_loads,
         kf._class_fill,
         kf._class_store,
-        kf._reduced_solve,
+        kf._reduced_solve1,
+        kf._reduced_solve2,
         kf._refine_balance,
         kf._coefficients_chunk,
         kf._estimators_chunk,
