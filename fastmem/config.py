@@ -1,7 +1,8 @@
 """Run-time settings: the thread pools of the Numba kernels and of BLAS.
 
-fastmem runs two kinds of parallel work: Numba kernels (``prange`` loops over
-triangles or vertex patches) and BLAS calls inside scipy/pyamg.  On a small
+fastmem runs two kinds of parallel work: Numba kernels (serial kernels over
+ranges of triangles or vertex patches, run by a pool of threads,
+``fastmem.kernels.pool``) and BLAS calls inside scipy/pyamg.  On a small
 machine the two pools compete for the same cores; measured on a 2-core machine,
 OpenBLAS at its default of 2 threads made pyamg 2.5-20x slower than with one
 thread.  fastmem therefore limits the BLAS pool to :data:`blas_threads` (default

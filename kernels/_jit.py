@@ -4,7 +4,7 @@ import functools
 
 import numba
 
-__all__ = ["FASTMATH", "jit", "pjit"]
+__all__ = ["FASTMATH", "jit"]
 
 # No "nnan"/"ninf": max(0, .) and active-set comparisons need IEEE semantics.
 # No "contract"/"reassoc": with them the flux estimators differed in the last bits
@@ -17,4 +17,3 @@ __all__ = ["FASTMATH", "jit", "pjit"]
 FASTMATH = frozenset({"nsz", "arcp", "afn"})
 
 jit = functools.partial(numba.njit, cache=True, fastmath=set(FASTMATH), nogil=True)
-pjit = functools.partial(numba.njit, cache=True, fastmath=set(FASTMATH), nogil=True, parallel=True)

@@ -1579,7 +1579,8 @@ def precompile(part: str) -> None:
     """Compile (or load from Numba's cache) one group of this module's kernels.
 
     ``part``: ``"patches"`` (the patch kernel and its callees, the bulk of the
-    compile time, constant tensions), ``"solvers"`` (its largest callee),
+    compile time, constant tensions), ``"weighted"`` (the patch kernel for
+    per-triangle tensions), ``"solvers"`` (the largest callee of the first),
     ``"coefficients"`` or ``"estimators"``.  The kernels are
     called on empty ranges with arrays of exactly the types
     :func:`fastmem.estimators.flux.reconstruct` and :func:`fastmem.estimators.bound.flux_terms` pass
@@ -1592,8 +1593,9 @@ def precompile(part: str) -> None:
     triangles = _readonly(np.array([[0, 1, 2]], dtype=np.int64))
     diameters = _readonly(np.ones(1))
     coef = np.zeros((2, 1, 8))
-    if part == "patches":
-        _reconstruct_chunk(
+    if part in ("patches", "weighted"):
+        kernel = _reconstruct_chunk_weighted if part == "weighted" else _reconstruct_chunk
+        kernel(
             np.zeros(1, dtype=np.int64),
             0,
             0,
@@ -1646,7 +1648,8 @@ def precompile(part: str) -> None:
         )
     else:
         raise ValueError(
-            f"part must be 'patches', 'solvers', 'coefficients' or 'estimators', got {part!r}"
+            "part must be 'patches', 'weighted', 'solvers', 'coefficients' or 'estimators', "
+            f"got {part!r}"
         )
 
 

@@ -12,29 +12,34 @@ new vertex) and every output triangle has its refinement edge at local edge 0.
 """
 
 import numpy as np
-from numba import prange
 
-from ._jit import jit, pjit
+from . import pool as _par
+from ._jit import jit
 
 __all__ = ["bisect", "closure", "longest_edge"]
 
 
-@pjit
 def longest_edge(vertices, triangles, triangle_edges):
     """Local index of the longest edge of each triangle (ties: the lowest global edge).
 
     Squared lengths are compared exactly; among equally long edges the one
     with the lowest global edge index wins, so the choice does not depend on
-    the order of the vertices inside a triangle.  Parallel over triangles,
-    each writes its own entry.
+    the order of the vertices inside a triangle.  Parallel over triangles
+    (:mod:`.pool`), each writes its own entry.
 
     Returns
     -------
     int8 (M,)
     """
-    m = triangles.shape[0]
-    ref = np.empty(m, dtype=np.int8)
-    for k in prange(m):
+    ref = np.empty(triangles.shape[0], dtype=np.int8)
+    _par.parallel_for(_longest_edge_range, ref.shape[0], vertices, triangles, triangle_edges, ref)
+    return ref
+
+
+@jit
+def _longest_edge_range(k0, k1, vertices, triangles, triangle_edges, ref):
+    """Rows k0..k1-1 of :func:`longest_edge` (written into ``ref``)."""
+    for k in range(k0, k1):
         best = -1.0
         best_i = 0
         best_e = -1
@@ -50,7 +55,6 @@ def longest_edge(vertices, triangles, triangle_edges):
                 best_i = i
                 best_e = e
         ref[k] = best_i
-    return ref
 
 
 @jit
@@ -108,7 +112,6 @@ def _put(children, parent, p, a, b, c, k):
     parent[p] = k
 
 
-@pjit
 def bisect(triangles, triangle_edges, ref, edge_vertex):
     """Split every triangle by the NVB pattern of its bisected edges.
 
@@ -124,8 +127,8 @@ def bisect(triangles, triangle_edges, ref, edge_vertex):
       (3 children with one of them, 4 with both).
 
     Children of triangle ``k`` are contiguous, in the order of ``k``.  Two
-    parallel passes over triangles (count, then fill the slots of a prefix
-    sum: each triangle writes only its own rows).
+    parallel passes over triangles (:mod:`.pool`: count, then fill the slots
+    of a prefix sum; each triangle writes only its own rows).
 
     Returns
     -------
@@ -136,7 +139,20 @@ def bisect(triangles, triangle_edges, ref, edge_vertex):
     """
     m = triangles.shape[0]
     ptr = np.zeros(m + 1, dtype=np.int64)
-    for k in prange(m):
+    _par.parallel_for(_count_children_range, m, triangle_edges, ref, edge_vertex, ptr)
+    np.cumsum(ptr, out=ptr)
+    children = np.empty((ptr[m], 3), dtype=np.int64)
+    parent = np.empty(ptr[m], dtype=np.int64)
+    _par.parallel_for(
+        _children_range, m, triangles, triangle_edges, ref, edge_vertex, ptr, children, parent
+    )
+    return children, parent
+
+
+@jit
+def _count_children_range(k0, k1, triangle_edges, ref, edge_vertex, ptr):
+    """``ptr[k + 1]`` = the number of children of triangle k, for k0 <= k < k1."""
+    for k in range(k0, k1):
         r = ref[k]
         if edge_vertex[triangle_edges[k, r]] < 0:
             ptr[k + 1] = 1
@@ -146,11 +162,12 @@ def bisect(triangles, triangle_edges, ref, edge_vertex):
                 ptr[k + 1] += 1
             if edge_vertex[triangle_edges[k, (r + 2) % 3]] >= 0:
                 ptr[k + 1] += 1
-    for k in range(m):
-        ptr[k + 1] += ptr[k]
-    children = np.empty((ptr[m], 3), dtype=np.int64)
-    parent = np.empty(ptr[m], dtype=np.int64)
-    for k in prange(m):
+
+
+@jit
+def _children_range(k0, k1, triangles, triangle_edges, ref, edge_vertex, ptr, children, parent):
+    """Write the children of the triangles k0..k1-1 into their slots ``ptr[k]:ptr[k + 1]``."""
+    for k in range(k0, k1):
         r = ref[k]
         v0 = triangles[k, r]
         v1 = triangles[k, (r + 1) % 3]
@@ -174,4 +191,3 @@ def bisect(triangles, triangle_edges, ref, edge_vertex):
         else:
             _put(children, parent, p, m1, mid, v2, k)
             _put(children, parent, p + 1, m1, v0, mid, k)
-    return children, parent

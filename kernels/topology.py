@@ -20,9 +20,8 @@ vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
 
 import numba
 import numpy as np
-from numba import prange
 
-from ._jit import jit, pjit
+from ._jit import jit
 from .pool import GRAIN, n_threads, parallel_for, ranges, run_ranges, zeros
 
 __all__ = [
@@ -102,8 +101,20 @@ def edge_topology(t, n, patches=None):
     def number(lo, hi):
         c = index[lo]
         _number_edges(
-            lo, hi, first[c], t, ptr, ptris, plocal, scratch[c, 0], scratch[c, 1],
-            edges, tri_edges, et, counts, forward,
+            lo,
+            hi,
+            first[c],
+            t,
+            ptr,
+            ptris,
+            plocal,
+            scratch[c, 0],
+            scratch[c, 1],
+            edges,
+            tri_edges,
+            et,
+            counts,
+            forward,
         )
 
     run_ranges(number, chunks)
@@ -188,7 +199,6 @@ def _number_edges(
             tri_edges[k, i] = e
 
 
-@pjit
 def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_vertex, n_old, n):
     """:func:`edge_topology` of a mesh refined by NVB, derived from its parent's edges.
 
@@ -210,6 +220,34 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
       by ``hi`` over their half-edges only (about a fifth of all on an adaptive step);
     * in the lexicographic order, an old vertex's bucket lists its surviving old edges
       (``hi < n_old``, in the parent's order) before its edges to new vertices.
+
+    The surviving old edges are filled in parallel (:mod:`.pool`), the rest serially.
+    """
+    edges, tri_edges, et, counts, forward, cptr, remap = _refined_new_edges(
+        t, parent, m_old, old_edges, edge_vertex, n_old, n
+    )
+    bad = []
+
+    def survivors(e0, e1):
+        bad.append(
+            _surviving_edges_range(
+                e0, e1, t, old_edges, old_edge_triangles, cptr, remap,
+                edges, tri_edges, et, counts, forward,
+            )
+        )  # fmt: skip
+
+    run_ranges(survivors, ranges(old_edges.shape[0], n_threads(), GRAIN))
+    if any(bad):
+        raise ValueError("an old edge that was not bisected is in no child of its triangles")
+    return edges, tri_edges, et, counts, forward
+
+
+@jit
+def _refined_new_edges(t, parent, m_old, old_edges, edge_vertex, n_old, n):
+    """Run the serial part of :func:`refined_edge_topology`: the edges with a new end point.
+
+    Returns its five arrays with only those edges filled, the children's pointer
+    of each old triangle, and the new index of each surviving old edge (-1: bisected).
     """
     m = t.shape[0]
     e_old = old_edges.shape[0]
@@ -301,9 +339,19 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
             if t[k, (i + 1) % 3] < t[k, (i + 2) % 3]:
                 forward[j] += 1
             tri_edges[k, i] = j
-    # surviving old edges: the children of their old triangles that contain them
+    return edges, tri_edges, et, counts, forward, cptr, remap
+
+
+@jit
+def _surviving_edges_range(
+    e0, e1, t, old_edges, old_edge_triangles, cptr, remap, edges, tri_edges, et, counts, forward
+):
+    """Fill the surviving old edges among e0..e1-1 from the children of their old triangles.
+
+    Returns how many of their old triangles have no child containing them (0 on a valid input).
+    """
     bad = 0
-    for e in prange(e_old):
+    for e in range(e0, e1):
         j = remap[e]
         if j < 0:
             continue
@@ -336,9 +384,7 @@ def refined_edge_topology(t, parent, m_old, old_edges, old_edge_triangles, edge_
                 bad += 1
         counts[j] = c
         forward[j] = f
-    if bad:
-        raise ValueError("an old edge that was not bisected is in no child of its triangles")
-    return edges, tri_edges, et, counts, forward
+    return bad
 
 
 def vertex_patch_ptr(t, n):

@@ -139,6 +139,9 @@ def pytest_sessionstart(session):
     reporter = session.config.pluginmanager.get_plugin("terminalreporter")
     if reporter is not None:
         reporter.write_line("fastmem: compiling the solver's kernels first (cold Numba cache) ...")
+    # many tests have per-triangle tensions: the helper process compiles their patch
+    # kernel after the default one (the warm-up waits for both)
+    warmup.start_compile_helper(("patches", "weighted"))
     done = warmup.warm_up("inexact", adaptive=True)
     if reporter is not None:
         reporter.write_line(f"fastmem: {done}")

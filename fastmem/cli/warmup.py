@@ -200,7 +200,8 @@ def _cpus() -> int:
 #: the helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
 #: imports ``fastmem.kernels`` (numpy and numba only) without running
 #: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
-#: the helper does not need; argv: the folders of ``fastmem`` and of its kernels.
+#: the helper does not need; argv: the folders of ``fastmem`` and of its kernels, then
+#: the patch kernels to compile (parts of :func:`fastmem.kernels.flux.precompile`).
 _HELPER_CODE = """
 import importlib.util, sys, types
 package = types.ModuleType("fastmem")
@@ -246,7 +247,8 @@ try:
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass
 flux.precompile("coefficients")
-flux.precompile("patches")
+for part in sys.argv[3:]:
+    flux.precompile(part)
 import gc
 gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see fastmem.cli.main)
 """
@@ -255,39 +257,85 @@ gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see
 _helper = None
 
 
-def start_compile_helper() -> bool:
+def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     """Start compiling the flux patch kernel in a helper process, if that will help.
 
     Only with an empty cache for that kernel, two or more usable CPUs and
     ``FASTMEM_COMPILE_HELPER`` not set to 0.  :func:`warm_up` calls it; a caller
     that has other work to do first (``fastmem run`` builds its mesh) calls it
-    earlier so that the helper starts sooner.  Returns whether a helper runs.
+    earlier so that the helper starts sooner.  ``parts``: the patch kernels, in
+    order: ``"patches"`` (constant tensions) and/or ``"weighted"`` (per-triangle
+    tensions).  Returns whether a helper runs.
     """
     global _helper
     if _helper is not None and _helper.poll() is None:
         return True
-    _helper = None
-    if os.environ.get("FASTMEM_COMPILE_HELPER", "1").strip().lower() in ("0", "no", "false", "off"):
+    _helper = spawn_compile_helper(*parts)
+    if _helper is None:
         return False
+    # the patch kernel's largest callee, here, while the helper imports
+    # fastmem and compiles the coefficient pass: it then loads it from the cache
+    flux.precompile("solvers")
+    return True
 
+
+def _patch_kernel(part: str):
+    if part not in ("patches", "weighted"):
+        raise ValueError(f"part must be 'patches' or 'weighted', got {part!r}")
+    return flux._reconstruct_chunk_weighted if part == "weighted" else flux._reconstruct_chunk
+
+
+def spawn_compile_helper(*parts: str):
+    """Compile flux patch kernels (parts of :func:`fastmem.kernels.flux.precompile`) apart.
+
+    Returns the process (wait for it with :func:`join_compile_helper`), or None
+    where a helper would not help: those kernels are cached already, fewer than
+    two CPUs, ``FASTMEM_COMPILE_HELPER=0``, or the process cannot start.
+    """
+    kernels_of = [_patch_kernel(part) for part in parts]
+    if os.environ.get("FASTMEM_COMPILE_HELPER", "1").strip().lower() in ("0", "no", "false", "off"):
+        return None
     try:
-        if _cpus() < 2 or _cached(flux._reconstruct_chunk):
-            return False
-
+        todo = [part for part, k in zip(parts, kernels_of, strict=True) if not _cached(k)]
+        if _cpus() < 2 or not todo:
+            return None
         folders = [os.path.dirname(os.path.abspath(f)) for f in (__file__, kernels.__file__)]
-        _helper = subprocess.Popen(
-            [sys.executable, "-c", _HELPER_CODE, *folders],
+        return subprocess.Popen(
+            [sys.executable, "-c", _HELPER_CODE, *folders, *todo],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
         )
     except Exception as err:  # noqa: BLE001 - no helper: compile here, as without it
         logger.debug("no compile helper process: %s", err)
+        return None
+
+
+def _saved(dispatcher) -> bool:
+    """Whether Numba's cache holds a complete entry for ``dispatcher`` (index and data)."""
+    try:
+        cache_file = dispatcher._cache._cache_file
+        if not os.path.exists(cache_file._index_path):
+            return False
+        names = list(cache_file._load_index().values())
+        return bool(names) and all(os.path.exists(cache_file._data_path(n)) for n in names)
+    except Exception:  # noqa: BLE001 - being replaced, or another cache layout: not yet
         return False
-    # the patch kernel's largest callee, here, while the helper imports
-    # fastmem and compiles the coefficient pass: it then loads them from the cache
-    flux.precompile("solvers")
-    return True
+
+
+def _wait_for_kernel(proc, part: str) -> bool:
+    """Wait until the helper has saved the patch kernel ``part`` or has exited.
+
+    A helper that compiles several kernels goes on with the next while the
+    caller loads this one from the cache.
+    """
+    dispatcher = _patch_kernel(part)
+    deadline = time.monotonic() + HELPER_TIMEOUT
+    while proc.poll() is None and time.monotonic() < deadline:
+        if _saved(dispatcher):
+            return True
+        time.sleep(0.01)
+    return join_compile_helper(proc)
 
 
 def _take_helper():
@@ -300,7 +348,7 @@ def _take_helper():
 HELPER_TIMEOUT = 300.0
 
 
-def _join_helper(proc) -> bool:
+def join_compile_helper(proc) -> bool:
     """Wait for the helper; True when it finished cleanly (its kernel is in the cache)."""
     try:
         _, err = proc.communicate(timeout=HELPER_TIMEOUT)
@@ -432,9 +480,10 @@ def warm_up(
     hits0, misses0 = _counts(dispatchers)
     t0 = time.perf_counter()
     uses_flux = method == "inexact" or estimate or adaptive
-    helper = _take_helper() if uses_flux and start_compile_helper() else None
+    part = "weighted" if general else "patches"
+    helper = _take_helper() if uses_flux and start_compile_helper((part,)) else None
     if helper is not None:
-        _kflux.compile_gate = lambda: _join_helper(helper)
+        _kflux.compile_gate = lambda: _wait_for_kernel(helper, part)
         # meanwhile: the flux kernels the helper does not compile and, for a mesh
         # without a coarser version, the point location of its auxiliary coarse
         # mesh (otherwise compiled after the wait; nested structured meshes need none)
@@ -481,7 +530,7 @@ def warm_up(
         if helper is not None:
             _kflux.compile_gate = None
             if helper.poll() is None:  # the solve never reached the flux kernel
-                _join_helper(helper)
+                join_compile_helper(helper)
     seconds = time.perf_counter() - t0
     hits1, misses1 = _counts(dispatchers)
     return WarmUp(

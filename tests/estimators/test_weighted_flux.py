@@ -135,6 +135,31 @@ def test_per_triangle_array_of_a_constant_is_the_constant():
     assert np.abs(a.coef - b.coef).max() <= 1e-13 * np.abs(a.coef).max()
 
 
+@pytest.mark.parametrize("redistribute", [True, False, "glued"])
+def test_weighted_kernel_with_unit_weights_gives_the_constant_kernels_bits(
+    monkeypatch, redistribute
+):
+    """The two patch kernels of kernels/flux.py on one problem, compared bit for bit.
+
+    Constant tensions passed as per-triangle arrays take the weighted kernel (a
+    Scene would turn them back into scalars, so the arrays are made where the
+    reconstruction converts them); its weights are then exactly 1.
+    """
+    from fastmem.kernels import flux as kf
+
+    mesh = perturbed_square(6, 0.3)
+    scene = fm.Scene(mesh, mu=(2.0, 0.5), f=(-4.0, 1.0), g=0.1)
+    sol = fm.solve(scene, method="exact")
+    u1, u2, lam = _perturb(mesh, sol.u1, sol.u2, sol.lam, seed=5, amount=0.01)
+    a = flux.reconstruct(scene, u1, u2, lam, redistribute=redistribute)
+    m = mesh.n_triangles
+    monkeypatch.setattr(flux, "_mu_array", lambda mu: np.full(m, float(mu)))
+    b = flux.reconstruct(scene, u1, u2, lam, redistribute=redistribute)
+    assert len(kf._reconstruct_chunk_weighted.signatures) == 1  # it ran
+    assert np.array_equal(a.coef, b.coef)
+    assert np.abs(a.coef).max() > 0.0
+
+
 def test_weighting_changes_the_flux_only_where_mu_varies():
     """Checkerboard of 1 and 1e3: the weighted and unweighted reconstructions differ."""
     scene, u1, u2, lam, r1, r2 = case("square4", "checker-1e6")

@@ -341,18 +341,33 @@ def test_stored_labels_survive_a_rebuild_with_refinement_edge_0(rng):
     assert_array_equal(a.vertices, b.vertices)
 
 
-def test_serial_and_parallel_agree(rng):
+@pytest.mark.parametrize("validate", [True, False])
+def test_serial_and_parallel_agree(rng, monkeypatch, validate):
+    """One thread against every thread in chunks of a few triangles / edges: same arrays.
+
+    (validate=False derives the edges from the parent's in chunks as well.)
+    """
+    from fastmem.kernels import pool, topology
+
     mesh = perturbed_square(16, 0.3)
     marked = rng.random(mesh.n_triangles) < 0.3
-    a, ta = refine_marked(mesh, marked)
     threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        b, tb = refine_marked(mesh, marked)
+        a, ta = refine_marked(mesh, marked, validate=validate)
+    finally:
+        numba.set_num_threads(threads)
+    monkeypatch.setattr(pool, "GRAIN", 7)  # chunks of the pool's parallel loops
+    monkeypatch.setattr(topology, "GRAIN", 7)
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    try:
+        b, tb = refine_marked(mesh, marked, validate=validate)
     finally:
         numba.set_num_threads(threads)
     assert_array_equal(a.triangles, b.triangles)
     assert_array_equal(ta.parent_triangle, tb.parent_triangle)
+    for name in _TOPOLOGY:
+        assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
 
 
 def test_nothing_marked_keeps_the_triangles():
