@@ -4,7 +4,7 @@ import functools
 
 import numba
 
-__all__ = ["FASTMATH", "jit"]
+__all__ = ["FASTMATH", "jit", "pjit"]
 
 # No "nnan"/"ninf": max(0, .) and active-set comparisons need IEEE semantics.
 # No "contract"/"reassoc": with them the flux estimators differed in the last bits
@@ -17,3 +17,7 @@ __all__ = ["FASTMATH", "jit"]
 FASTMATH = frozenset({"nsz", "arcp", "afn"})
 
 jit = functools.partial(numba.njit, cache=True, fastmath=set(FASTMATH), nogil=True)
+#: Numba's parallel compiler: no kernel of this version uses it (kernels.pool says
+#: why); the baseline kernels that benchmarks load from the project's history do
+#: (bench/estimate.py ``base_reconstruct``).
+pjit = functools.partial(numba.njit, cache=True, fastmath=set(FASTMATH), nogil=True, parallel=True)
