@@ -1581,7 +1581,8 @@ def precompile(part: str) -> None:
     ``part``: ``"patches"`` (the patch kernel and its callees, the bulk of the
     compile time, constant tensions), ``"weighted"`` (the patch kernel for
     per-triangle tensions), ``"solvers"`` (the largest callee of the first),
-    ``"coefficients"`` or ``"estimators"``.  The kernels are
+    ``"coefficients"`` (the coefficient pass and the vertex colouring) or
+    ``"estimators"``.  The kernels are
     called on empty ranges with arrays of exactly the types
     :func:`fastmem.estimators.flux.reconstruct` and :func:`fastmem.estimators.bound.flux_terms` pass
     (read-only mesh arrays, 32-bit topology), so the code compiled here is the
@@ -1629,6 +1630,8 @@ def precompile(part: str) -> None:
         _reduced_solve2(a, a, a, a, a, cstart, 0, 0, False, 0, 2, 0)  # nothing to solve
     elif part == "coefficients":
         _coefficients_chunk(vertices, triangles, diameters, coef, 0, 0)
+        # and the vertex colouring (writable int32 CSR arrays, as csr_structure gives)
+        color_vertices(0, np.zeros(1, dtype=np.int32), np.zeros(0, dtype=np.int32))
     elif part == "estimators":
         rule = _readonly(np.zeros((1, 3))), _readonly(np.zeros(1))
         u = np.zeros(3)

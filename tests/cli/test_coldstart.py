@@ -54,11 +54,13 @@ def test_precompile_compiles_the_pipeline_specialisations():
         kf._refine_balance,
         kf._coefficients_chunk,
         kf._estimators_chunk,
+        kf.color_vertices,
     )
     # at most one: a kernel loaded from the cache as a callee has none in-process
     counts = {d.__name__: len(d.signatures) for d in kernels}
     assert all(c <= 1 for c in counts.values()), counts
     assert counts["_reconstruct_chunk"] == counts["_estimators_chunk"] == 1, counts
+    assert counts["color_vertices"] == 1, counts
 
 
 def test_precompile_refuses_an_unknown_part():
