@@ -112,6 +112,21 @@ def test_failing_helper_falls_back_to_compiling_here(monkeypatch):
     assert warmup._helper is None
 
 
+@pytest.mark.parametrize(("general", "part"), [(False, "patches"), (True, "weighted")])
+def test_warm_up_asks_the_helper_for_the_patch_kernel_it_needs(monkeypatch, general, part):
+    """Per-triangle tensions (general=True) have their own patch kernel: the helper compiles it."""
+    asked = []
+    monkeypatch.setattr(warmup, "spawn_compile_helper", lambda *parts: asked.append(parts))
+    done = warmup.warm_up("inexact", general=general)
+    assert asked == [(part,)]
+    assert not done.helper  # the stand-in started none: compiled (or loaded) here
+
+
+def test_spawn_compile_helper_refuses_an_unknown_part():
+    with pytest.raises(ValueError, match="'everything'"):
+        warmup.spawn_compile_helper("patches", "everything")
+
+
 def test_kernels_cached_refuses_an_unknown_scope():
     with pytest.raises(ValueError, match="'some'"):
         warmup.kernels_cached("some")
