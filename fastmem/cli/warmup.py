@@ -12,15 +12,18 @@ time the solve apart from the compilation; :class:`KernelMeter` counts and
 times what Numba does in other code (``fastmem run`` builds its mesh meanwhile).
 
 Compiling is single-threaded Python work in Numba, and the flux patch kernel
-is half of it.  With an empty cache and a second core, :func:`warm_up`
-therefore compiles that kernel in a helper process (it lands in Numba's
-on-disk cache) while it compiles everything else itself, starting with the
-patch kernel's largest callee, which the helper then loads from the cache
-(if it gets there first, both compile them: slower, same result).
+is its largest part (about 40 % of a first ``fastmem run``'s).  With an empty
+cache and a second core, :func:`warm_up` therefore compiles that kernel (with
+the coefficient pass and the vertex colouring) in a helper process (it lands
+in Numba's on-disk cache) while it compiles everything else itself, starting
+with the patch kernel's largest callee, which the helper then loads from the
+cache (if it gets there first, both compile them: slower, same result).
 ``fastmem run`` starts the helper before it builds its mesh.  The tiny
-solve waits for the helper only when it reaches the flux reconstruction, then
-loads the kernel from the cache.  ``FASTMEM_COMPILE_HELPER=0`` turns the helper off; if
-it fails, the kernel is compiled in the calling process as without it.
+solve waits for the helper only when it reaches the flux reconstruction,
+until the kernel it needs is in the cache (a helper asked for both patch
+kernels goes on with the other), then loads it.  ``FASTMEM_COMPILE_HELPER=0``
+turns the helper off; if it fails, the kernel is compiled in the calling
+process as without it.
 """
 
 from __future__ import annotations
