@@ -451,7 +451,9 @@ def warm_up(
     unstructured : bool
         Whether its mesh has no coarser version (auxiliary coarse meshes).
     general : bool
-        Whether it takes the general linear-step path (per-triangle mu).
+        Whether its scene has per-triangle tensions: the general linear-step
+        path, and the flux patch kernel of per-triangle tensions (compiled
+        apart from the constant-tension one, :mod:`fastmem.kernels.flux`).
     obstacle : bool
         Whether it solves an obstacle problem (:class:`fastmem.Obstacle`): a
         tiny ball problem (docs/obstacle.md §8.1) is solved as well, which
