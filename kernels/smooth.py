@@ -61,6 +61,21 @@ def csr_matvec_range(lo, hi, indptr, indices, data, x, y):
 
 
 @jit
+def csr_abs_matvec_range(lo, hi, indptr, indices, data, x, b, y):
+    """``y[i] = sum_k |data[k]| |x[indices[k]]| + |b[i]|`` for the rows ``lo .. hi-1``.
+
+    ``|A| |x| + |b|`` without forming ``|A|``: each row summed in the order of
+    the stored entries, as scipy's ``csr_matvec`` sums ``abs(A) @ abs(x)``,
+    then ``|b_i|`` added, so the same bits as that expression.
+    """
+    for i in range(lo, hi):
+        s = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            s += abs(data[k]) * abs(x[indices[k]])
+        y[i] = s + abs(b[i])
+
+
+@jit
 def cross_block_dominant(indptr, indices, data, n_blocks):
     """Whether every row's diagonal exceeds the sum of its entries outside its block.
 

@@ -52,7 +52,7 @@ from ..kernels import assembly, flux, rows, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
-from ..linalg.sparse import masked_gap
+from ..linalg.sparse import ThreadedCSR, masked_gap
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
@@ -380,13 +380,16 @@ def _precompile_rows() -> None:
 
 
 def _precompile_masked() -> None:
-    """Compile the threaded gap-matrix kernels with the argument types of a solve.
+    """Compile the threaded gap-matrix and |A| |x| kernels with the argument types of a solve.
 
     The solvers use them from :data:`~fastmem.linalg.sparse.THREADED_ROWS` rows on
     (measured: 0.5 s of compilation inside the first solve of a ball at n = 256).
     """
     a = assemble_stiffness(Mesh.square(4))
     masked_gap(a, np.zeros(a.shape[0], dtype=bool))
+    # and the scale of the CG's attainable residual (fastmem.linalg.amg.PCG.attainable)
+    x = np.zeros(a.shape[0])
+    ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)
 
 
 def _precompile_sums() -> None:

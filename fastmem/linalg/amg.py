@@ -27,7 +27,7 @@ except ImportError:  # pragma: no cover - another scipy layout: keep its own met
     _bsr_base = None
 from ..kernels import pool as _par
 from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
-from .sparse import _kernel_arrays, _unsigned, threaded
+from .sparse import ThreadedCSR, _kernel_arrays, _unsigned, threaded
 
 __all__ = [
     "AMG_DEFAULTS",
@@ -773,6 +773,9 @@ class PCG:
     def attainable(self) -> float:
         """Smallest residual norm float64 can resolve here: ``64 eps ||(|A| |x| + |b|)||``."""
         a = self.a
+        if isinstance(a, ThreadedCSR):  # large: fused, in the kernel threads, same bits
+            scale = a.abs_product_plus(self.x, self.b)
+            return 64.0 * np.finfo(np.float64).eps * float(np.linalg.norm(scale))
         if getattr(a, "format", None) == "csr":  # |A| on A's pattern, not kept: no index copy
             abs_a = sp.csr_matrix((np.abs(a.data), a.indices, a.indptr), shape=a.shape)
         else:

@@ -7,7 +7,7 @@ import scipy.sparse as sp
 
 from ..kernels import pool as _par
 from ..kernels.masked import gap_counts_range, gap_fill_range
-from ..kernels.smooth import csr_matvec_range
+from ..kernels.smooth import csr_abs_matvec_range, csr_matvec_range
 
 __all__ = ["THREADED_ROWS", "ThreadedCSR", "masked_gap", "read_only", "threaded"]
 
@@ -83,6 +83,29 @@ class ThreadedCSR(sp.csr_matrix):
         y = np.empty(self.shape[0])
         indptr, indices, data = _unsigned(self.indptr), _unsigned(self.indices), self.data
         _par.parallel_for(csr_matvec_range, self.shape[0], indptr, indices, data, x, y)
+        return y
+
+    def abs_product_plus(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Return ``|A| |x| + |b|`` (float64 vectors) from the kernel threads, without ``|A|``.
+
+        The same bits as ``abs(A) @ abs(x) + abs(b)`` with SciPy and NumPy
+        (:func:`fastmem.kernels.smooth.csr_abs_matvec_range`); the scale of the
+        attainable residual (:meth:`fastmem.linalg.amg.PCG.attainable`).
+        """
+        x = np.asarray(x)
+        b = np.asarray(b)
+        if (
+            self.dtype != np.float64
+            or x.dtype != np.float64
+            or b.dtype != np.float64
+            or not _kernel_arrays(self)
+        ):
+            return abs(self) @ np.abs(x) + np.abs(b)
+        x = read_only(np.ascontiguousarray(x))
+        b = read_only(np.ascontiguousarray(b))
+        y = np.empty(self.shape[0])
+        indptr, indices = _unsigned(self.indptr), _unsigned(self.indices)
+        _par.parallel_for(csr_abs_matvec_range, self.shape[0], indptr, indices, self.data, x, b, y)
         return y
 
 

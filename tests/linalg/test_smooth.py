@@ -138,11 +138,36 @@ def test_not_dominant_across_blocks_keeps_pyamgs_sweep():
     assert isinstance(good.ml.levels[0].presmoother, HybridGaussSeidel)
 
 
+def _random_csr(rng, n=50_000, nnz=400_000):
+    """A random n x n CSR matrix (duplicates summed), large enough for the threaded kernels."""
+    rows, cols = rng.integers(0, n, (2, nnz))
+    return sp.csr_matrix((rng.standard_normal(nnz), (rows, cols)), shape=(n, n))
+
+
+def test_attainable_scale_equals_the_scipy_expression():
+    """|A| |x| + |b| in the kernel threads, without |A|: the bits of abs(A) @ abs(x) + abs(b)."""
+    from fastmem.linalg.amg import PCG
+
+    rng = np.random.default_rng(7)
+    m = _random_csr(rng)
+    n = m.shape[0]
+    t = threaded(m)
+    x, b = rng.standard_normal(n), rng.standard_normal(n)
+    want = abs(m) @ np.abs(x) + np.abs(b)
+    np.testing.assert_array_equal(t.abs_product_plus(x, b), want)
+    # and through the CG's attainable residual (fused for a ThreadedCSR, scipy's otherwise)
+    spd = (m @ m.T + sp.identity(n) * 10.0).tocsr()
+    fused = PCG(threaded(spd), b, x, lambda r: r)
+    plain = PCG(spd, b, x, lambda r: r)
+    assert isinstance(fused.a, ThreadedCSR)
+    assert not isinstance(plain.a, ThreadedCSR)
+    assert fused.attainable() == plain.attainable() > 0.0
+
+
 def test_threaded_products_equal_scipys():
     rng = np.random.default_rng(6)
-    n, nnz = 50_000, 400_000
-    rows, cols = rng.integers(0, n, (2, nnz))
-    m = sp.csr_matrix((rng.standard_normal(nnz), (rows, cols)), shape=(n, n))
+    m = _random_csr(rng)
+    n = m.shape[0]
     t = threaded(m)
     assert isinstance(t, ThreadedCSR)
     x = rng.standard_normal(n)
