@@ -392,8 +392,7 @@ def _patch_loads(
     """Write the data ``(g_i^a, lambda_j)_K`` of one patch triangle, contact load included, to gloc.
 
     Triangle t, where the patch vertex has local index i; ``kapj`` is scratch.
-    (The class members' :func:`_member_chunk`; the patch kernel has the same code
-    inline, which keeps its first-run compilation as it was.)
+    (Called by both patch kernels and the class members' :func:`_member_chunk`.)
     """
     # data (g, lambda_j)
     dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
@@ -542,6 +541,7 @@ def _patch_kernel(weighted):
         tau = np.empty((3, 2, 8))
         gloc = np.empty((3, 2))
         kapj = np.empty(3)
+        glued = chi_row.shape[0] == triangles.shape[0]
         for k in range(k0, k1):
             a = order[k]
             pstart = patch_ptr[a]
@@ -639,48 +639,11 @@ def _patch_kernel(weighted):
                 else:
                     m1 = mu1[0]
                     m2 = mu2[0]
-                # data (g, lambda_j)
-                dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
-                dot2 = m2 * (gax * du2x + gay * du2y) * area / 3.0
-                for j in range(3):
-                    mij = area / 12.0 * (2.0 if j == i else 1.0)  # int psi_a lambda_j
-                    if load1.shape[0] == 1:
-                        l1 = f1c * mij
-                    else:
-                        l1 = load1[t, i, j]
-                    if load2.shape[0] == 1:
-                        l2 = f2c * mij
-                    else:
-                        l2 = load2[t, i, j]
-                    if chi_row.shape[0] == triangles.shape[0]:
-                        # glued contact load on this triangle: (chi^a, lambda_j) moves
-                        # from membrane 2's data to membrane 1's (lam_a is 0 for a glued a)
-                        s_chi = chi_row[t]
-                        if s_chi >= 0:
-                            l1 += chi_mom[s_chi, i, j]
-                            l2 -= chi_mom[s_chi, i, j]
-                    gloc[j, 0] = l1 - dot1 - r1a * mij
-                    gloc[j, 1] = l2 - dot2 - r2a * mij
-                    # contact load (chi^a, lambda_j): lam_a psi_a, or the glued pressure (below)
-                    kapj[j] = (m1 * l2 - m2 * l1) / (m1 + m2) if redist_a else lam_a * mij
-                if redist_a:
-                    # redistributed contact load (fastmem.estimators.flux.contact_redistribution):
-                    # the L2 projection onto P1(K) of psi_a (mu1 f2 - mu2 f1) / (mu1 + mu2),
-                    # negative vertex values cut to 0, plus gamma_a m_K psi_a
-                    ssum = kapj[0] + kapj[1] + kapj[2]
-                    scale = 12.0 / area
-                    n0 = max(scale * (kapj[0] - 0.25 * ssum), 0.0)
-                    n1 = max(scale * (kapj[1] - 0.25 * ssum), 0.0)
-                    n2 = max(scale * (kapj[2] - 0.25 * ssum), 0.0)
-                    nsum = n0 + n1 + n2
-                    # mass correction gamma_a m_K psi_a, m_K = mu1 mu2 / (mu1 + mu2)
-                    gk = gam * m1 * m2 / (m1 + m2) * area / 12.0
-                    kapj[0] = area / 12.0 * (n0 + nsum) + gk * (2.0 if i == 0 else 1.0)
-                    kapj[1] = area / 12.0 * (n1 + nsum) + gk * (2.0 if i == 1 else 1.0)
-                    kapj[2] = area / 12.0 * (n2 + nsum) + gk * (2.0 if i == 2 else 1.0)
-                for j in range(3):
-                    gloc[j, 0] += kapj[j]
-                    gloc[j, 1] -= kapj[j]
+                # data (g, lambda_j) with the contact load (the class members' code)
+                _patch_loads(
+                    i, t, area, m1, m2, du1x, du1y, du2x, du2y, gax, gay, f1c, f2c, load1,
+                    load2, chi_row, chi_mom, glued, r1a, r2a, lam_a, redist_a, gam, gloc, kapj,
+                )  # fmt: skip
                 # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
                 b00 = div[1, 6]
                 b01 = div[1, 7]
