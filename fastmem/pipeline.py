@@ -66,6 +66,7 @@ def solve(
     rtol: float | None = None,
     theta: float | None = None,
     min_growth: float | None = None,
+    bisections: int | None = None,
     max_vertices: int | None = None,
     max_levels: int | None = None,
     time_budget: float | None = None,
@@ -176,8 +177,9 @@ def solve(
         marks the fewest triangles holding ``theta`` of ``sum_K eta_K^2``.
     min_growth : float
         Each refinement makes at least ``min_growth`` times the vertices of the
-        mesh it refines (in [1, 2]; default 1: Dörfler's mesh as it is, 1.3-1.4
-        times the vertices at ``theta=0.5``): when Dörfler's set falls short,
+        mesh it refines (in [1, 4], above 2 with ``bisections`` >= 2; default
+        1: Dörfler's mesh as it is, 1.3-1.4 times the vertices at
+        ``theta=0.5``): when Dörfler's set falls short,
         the next largest indicators are marked too.  Fewer, larger meshes keep
         the loop's total work a smaller multiple of the last mesh's (about
         ``min_growth / (min_growth - 1)`` times it).  On the L-shape
@@ -188,6 +190,12 @@ def solve(
         singularity that no mesh resolves (the Kellogg problem) the extra
         marking spreads over the domain and the loop runs to ``max_vertices``
         instead of stopping at the resolution limit.
+    bisections : int
+        Rounds of newest-vertex bisection per refinement (1, 2 or 3; default
+        1): from the second round on the children of the marked triangles are
+        marked again, so every marked triangle is bisected at least this many
+        times.  Each step then grows the mesh more (``min_growth`` up to
+        ``2**bisections``), so the loop makes fewer meshes.
     max_vertices : int
         Stop (``converged=False``) instead of solving a mesh with more
         vertices (default :data:`fastmem.solver.options.MAX_VERTICES`, 5M;
@@ -279,6 +287,7 @@ def solve(
         rtol=rtol,
         theta=theta,
         min_growth=min_growth,
+        bisections=bisections,
         max_vertices=max_vertices,
         max_levels=max_levels,
         time_budget=time_budget,
@@ -368,6 +377,7 @@ def _solve_obstacle(problem, options, initial, blas_threads, memory_limit):
             "rtol": adapt.rtol,
             "theta": adapt.theta,
             "min_growth": adapt.min_growth,
+            "bisections": adapt.bisections,
             "max_vertices": adapt.max_vertices,
             "max_levels": adapt.max_levels,
             "time_budget": adapt.time_budget,

@@ -108,7 +108,8 @@ from ..estimators.terms import refinement_indicators
 from ..fem.scene import Scene
 from ..kernels import nvb as _kn
 from ..mesh.refine import dorfler_mark, refine_marked, refinement_edges
-from ..solver.levels import solve_levels
+from ..solver.levels import keeps_chain, solve_levels
+from ..solver.nested import NESTED_MIN_VERTICES
 
 __all__ = [
     "ADAPTIVITY_COLUMNS",
@@ -351,17 +352,63 @@ def _landing_vertices(row, target, n_dorfler):
     return max(need, n * 1.05)
 
 
-def _mark_vertices(mesh, eta2, want, k0, n0):
+class _Counter:
+    """New vertices of refining a mask of ``mesh`` with ``bisections`` rounds, O(M) each.
+
+    The closure kernel of :func:`~fastmem.mesh.refine.refine_marked` counts the edges
+    that the first round bisects, without refining.  With more rounds (whose closures
+    depend on the meshes of the rounds before) the count is that number times the ratio
+    of all rounds' vertices to the first round's, measured by the last refinement made
+    (:meth:`refine`; :meth:`exact` makes one to measure it).
+    """
+
+    def __init__(self, mesh, bisections=1):
+        self.mesh, self.bisections = mesh, bisections
+        self.ref = refinement_edges(mesh, None)
+        self.ratio = 1.0
+        self.made = None  # (mask, fine mesh, refinement) of the last refinement
+
+    def first_round(self, mask) -> int:
+        mesh = self.mesh
+        closure = _kn.closure(mesh.triangle_edges, mesh.edge_triangles, self.ref, mask)
+        return int(np.count_nonzero(closure))
+
+    def __call__(self, mask, want=None) -> int:
+        n1 = self.first_round(mask)
+        return n1 if self.bisections == 1 else int(round(n1 * self.ratio))
+
+    def exact(self, mask) -> int:
+        """Count the vertices refining ``mask`` adds by refining (kept for :meth:`refine`)."""
+        if self.bisections == 1:
+            return self.first_round(mask)
+        fine, _ = self.refine(mask)
+        return fine.n_vertices - self.mesh.n_vertices
+
+    def refine(self, mask):
+        """``refine_marked(mesh, mask, ...)``; updates the ratio of the counts."""
+        if self.made is not None and self.made[0] is mask:
+            return self.made[1], self.made[2]
+        fine, refinement = refine_marked(
+            self.mesh, mask, validate=False, bisections=self.bisections
+        )
+        if self.bisections > 1:
+            n1 = refinement.rounds[0].n_new_vertices
+            self.ratio = (fine.n_vertices - self.mesh.n_vertices) / max(n1, 1)
+        self.made = (mask, fine, refinement)
+        return fine, refinement
+
+
+def _mark_vertices(mesh, eta2, want, k0, n0, count=None):
     """Mark the k largest indicators whose NVB closure bisects about ``want`` edges.
 
     ``k0`` triangles (Dörfler's set) gave ``n0`` bisected edges.  Each trial is a top-k
-    selection (:func:`numpy.argpartition`, O(M)) and a closure count (the kernel of
-    :func:`~fastmem.mesh.refine.refine_marked`, O(M)), at most ``_LANDING_TRIES`` of them:
-    secant steps on k inside the bracket found so far.
+    selection (:func:`numpy.argpartition`, O(M)) and a count (``count``, a
+    :class:`_Counter`: the closure kernel of :func:`~fastmem.mesh.refine.refine_marked`
+    for one round of bisection, O(M)), at most ``_LANDING_TRIES`` of them: secant steps
+    on k inside the bracket found so far.
     """
     m = eta2.size
-    te, et = mesh.triangle_edges, mesh.edge_triangles
-    ref = refinement_edges(mesh, None)
+    count = _Counter(mesh) if count is None else count
 
     def top(k):
         mask = np.zeros(m, dtype=bool)
@@ -378,17 +425,17 @@ def _mark_vertices(mesh, eta2, want, k0, n0):
     for _ in range(_LANDING_TRIES):
         k = int(min(max(round(k), lo[0] + 1), hi[0] - 1 if hi[1] is not None else m))
         mask = top(k)
-        count = int(np.count_nonzero(_kn.closure(te, et, ref, mask)))
-        if best is None or abs(count - want) < abs(best[1] - want):
-            best = (mask, count)
-        if abs(count - want) <= _LANDING_TOL * want or k >= m:
+        n_k = count(mask)
+        if best is None or abs(n_k - want) < abs(best[1] - want):
+            best = (mask, n_k)
+        if abs(n_k - want) <= _LANDING_TOL * want or k >= m:
             break
-        if count < want:
-            lo = (k, count)
+        if n_k < want:
+            lo = (k, n_k)
         else:
-            hi = (k, count)
+            hi = (k, n_k)
         if hi[1] is None:  # no upper bracket yet: proportional step from the lower one
-            k = k * want / max(count, 1)
+            k = k * want / max(n_k, 1)
         elif hi[0] - lo[0] <= 1:
             break
         else:
@@ -396,23 +443,41 @@ def _mark_vertices(mesh, eta2, want, k0, n0):
     return best[0]
 
 
-def new_vertices(mesh, marked) -> int:
+def new_vertices(mesh, marked, bisections=1) -> int:
     """Vertices that refining ``marked`` adds (edges bisected with the NVB closure), O(M)."""
-    ref = refinement_edges(mesh, None)
-    return int(np.count_nonzero(_kn.closure(mesh.triangle_edges, mesh.edge_triangles, ref, marked)))
+    return _Counter(mesh, bisections).exact(marked)
 
 
-def ensure_growth(mesh, eta2, marked, min_growth):
+def _recount(mesh, eta2, want, marked, count):
+    """Return ``marked``, or search once more when its refinement misses ``want`` by > 3 %.
+
+    With more than one round of bisection the search counts by a ratio measured on
+    another set (:class:`_Counter`): the set found is refined, and searched once more
+    with the ratio it gave if its count is off.
+    """
+    if count.bisections == 1:
+        return marked
+    n = count.exact(marked)
+    if abs(n - want) <= 0.03 * want:
+        return marked
+    return _mark_vertices(mesh, eta2, want, int(np.count_nonzero(marked)), n, count)
+
+
+def ensure_growth(mesh, eta2, marked, min_growth, bisections=1):
     """Return ``marked``, or the largest indicators giving ``min_growth`` times the vertices.
 
     The minimum growth of the MARK step (module docstring), for a loop without the
-    landing rule (:mod:`fastmem.adapt.obstacle`).
+    landing rule (:mod:`fastmem.adapt.obstacle`); ``bisections`` rounds per refinement.
     """
     grow = (min_growth - 1.0) * mesh.n_vertices
-    n0 = new_vertices(mesh, marked)
+    if grow <= 0.0:
+        return marked
+    count = _Counter(mesh, bisections)
+    n0 = count.exact(marked)
     if n0 >= grow:
         return marked
-    return _mark_vertices(mesh, eta2, grow, int(np.count_nonzero(marked)), n0)
+    marked = _mark_vertices(mesh, eta2, grow, int(np.count_nonzero(marked)), n0, count)
+    return _recount(mesh, eta2, grow, marked, count)
 
 
 def resolution_limit(mesh) -> float:
@@ -455,20 +520,23 @@ def _next_mesh(scene, result, adapt, row=None, target=None, eta2=None):
     marked = dorfler_mark(eta2, adapt.theta)
     mesh = scene.mesh
     aim = None
+    count = _Counter(mesh, adapt.bisections)
     if row is not None:
         k0 = int(np.count_nonzero(marked))
-        n0 = new_vertices(mesh, marked)
+        n0 = count.exact(marked)
         # the minimum growth: Dörfler's set, or the largest indicators that give
         # (min_growth - 1) N new vertices when it gives fewer
         grow = (adapt.min_growth - 1.0) * mesh.n_vertices
         aim = _landing_vertices(row, target, mesh.n_vertices + max(n0, grow))
         if aim is not None:
-            marked = _mark_vertices(mesh, eta2, aim - mesh.n_vertices, k0, n0)
+            marked = _mark_vertices(mesh, eta2, aim - mesh.n_vertices, k0, n0, count)
+            marked = _recount(mesh, eta2, aim - mesh.n_vertices, marked, count)
         elif n0 < grow:
-            marked = _mark_vertices(mesh, eta2, grow, k0, n0)
+            marked = _mark_vertices(mesh, eta2, grow, k0, n0, count)
+            marked = _recount(mesh, eta2, grow, marked, count)
     # validate=False skips only the duplicate-vertex search (new vertices are midpoints of
     # distinct edges); the edge checks run when the solver first asks for the edges
-    fine, refinement = refine_marked(mesh, marked, validate=False)
+    fine, refinement = count.refine(marked)
     return float(marked.mean()), fine, refinement, aim
 
 
@@ -504,6 +572,9 @@ def solve_to_tolerance(scene, options, init, timings):
     t_start = time.perf_counter()
     merged, rows = _Merged(), []
     triple, prolonged, hint, landing = init, False, None, False
+    # the interior interpolations onto the current mesh, finest first: the multigrid
+    # hierarchy of every mesh is the one before plus a level (solve_levels' transfers)
+    chain = [] if keeps_chain(level_options, scene) else None
     tight = _with_gamma(level_options, FINAL_GAMMA)  # None: nothing to tighten
     refine_total = 0.0
     landings = []
@@ -515,7 +586,9 @@ def solve_to_tolerance(scene, options, init, timings):
         expected = None if hint is None else _target(adapt, rows[-1]["energy_norm"])
         last_expected = tight is not None and hint is not None and (landing or hint <= expected)
         opts = tight if last_expected else level_options
-        result = solve_levels(scene, opts, triple, {}, prolonged=prolonged, disc_hint=hint)
+        result = solve_levels(
+            scene, opts, triple, {}, prolonged=prolonged, disc_hint=hint, transfers=chain
+        )
         energy = energy_norm(scene, result.u1, result.u2)
         target = _target(adapt, energy)
         row = _row(level, scene, result, target, energy, time.perf_counter() - t0)
@@ -523,7 +596,12 @@ def solve_to_tolerance(scene, options, init, timings):
         if tight is not None and opts is not tight and _near_miss(row, target):
             # missed by the solver's share only: solve on, on this mesh (no refinement)
             result = solve_levels(
-                scene, tight, [result.u1, result.u2, result.lam], {}, disc_hint=row["eta_disc"]
+                scene,
+                tight,
+                [result.u1, result.u2, result.lam],
+                {},
+                disc_hint=row["eta_disc"],
+                transfers=chain,
             )
             energy = energy_norm(scene, result.u1, result.u2)
             target = _target(adapt, energy)
@@ -556,6 +634,8 @@ def solve_to_tolerance(scene, options, init, timings):
                 new_scene = refine_scene(scene, mesh, refinement)
                 last = (result.u1, result.u2, result.lam)
                 triple = prolong_to_refined(new_scene, refinement, last)
+                if chain is not None:
+                    extend_chain(chain, scene.mesh, mesh, refinement)
                 # eta_disc ~ N^(-1/2) on adapted meshes: the prediction for the next mesh
                 hint = row["eta_disc"] * (row["n_vertices"] / mesh.n_vertices) ** 0.5
                 scene, prolonged = new_scene, True
@@ -575,6 +655,25 @@ def solve_to_tolerance(scene, options, init, timings):
     result = _finish(result, merged, rows, adapt, reached and ok, reason)
     result.parameters["adaptivity"]["landings"] = landings
     return result
+
+
+#: The adaptive chain keeps its coarsest level below this many interior vertices: coarser
+#: links are dropped (the coarsest level is factored densely, at most
+#: :data:`fastmem.linalg.gmg.COARSE_DENSE` unknowns).
+CHAIN_MIN_UNKNOWNS = NESTED_MIN_VERTICES
+
+
+def extend_chain(chain, old, new, refinement) -> None:
+    """Put the interior interpolation from mesh ``old`` to its refinement ``new`` first.
+
+    ``chain``: interior interpolations onto ``old``, finest first (changed in place).  The
+    coarsest links go while the level above them has fewer than
+    :data:`CHAIN_MIN_UNKNOWNS` interior vertices.
+    """
+    p = refinement.prolongation_matrix()
+    chain.insert(0, p[new.interior_vertices][:, old.interior_vertices].tocsr())
+    while len(chain) > 1 and chain[-1].shape[0] < CHAIN_MIN_UNKNOWNS:
+        chain.pop()
 
 
 def _target(adapt, energy):
@@ -613,6 +712,7 @@ def _finish(result, merged, rows, adapt, converged, reason):
         "rtol": adapt.rtol,
         "theta": adapt.theta,
         "min_growth": adapt.min_growth,
+        "bisections": adapt.bisections,
         "max_vertices": adapt.max_vertices,
         "max_levels": adapt.max_levels,
         "time_budget": adapt.time_budget,

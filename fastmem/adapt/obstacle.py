@@ -160,6 +160,7 @@ def solve_obstacle(problem: Obstacle, options: dict, initial=None) -> ObstacleRe
 def _solve_to_tolerance(problem, options, initial, timings, t0):
     tol, rtol, theta = (options["adapt"][k] for k in ("tol", "rtol", "theta"))
     min_growth = options["adapt"].get("min_growth", 1.0)
+    bisections = options["adapt"].get("bisections", 1)
     max_vertices = options["adapt"]["max_vertices"]
     max_levels = options["adapt"]["max_levels"]
     budget = options["adapt"]["time_budget"]
@@ -215,9 +216,11 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
             break
         t2 = time.perf_counter()
         eta2 = est.indicators**2
-        marked = ensure_growth(problem.mesh, eta2, dorfler_mark(eta2, theta), min_growth)
+        marked = ensure_growth(
+            problem.mesh, eta2, dorfler_mark(eta2, theta), min_growth, bisections
+        )
         row["marked_fraction"] = float(marked.mean())
-        new_mesh, refinement = refine_marked(problem.mesh, marked)
+        new_mesh, refinement = refine_marked(problem.mesh, marked, bisections=bisections)
         new_problem = refine_problem(problem, new_mesh, refinement)
         u = refinement.prolong(level.u)
         lam = refinement.prolong(level.lam)
@@ -235,6 +238,7 @@ def _solve_to_tolerance(problem, options, initial, timings, t0):
     }
     extra = {"stop_reason": stop_reason, "tol": tol, "rtol": rtol, "theta": theta}
     extra["min_growth"] = min_growth
+    extra["bisections"] = bisections
     level.converged = level.converged and converged
     return _result(problem, level, options, rows, timings, adaptivity, extra)
 

@@ -276,7 +276,13 @@ def _build_parser() -> argparse.ArgumentParser:
         "--min-growth",
         type=float,
         default=None,
-        help="least vertex growth per refinement, in [1, 2] (default 1: Dörfler's)",
+        help="least vertex growth per refinement, in [1, 4] (default 1: Dörfler's)",
+    )
+    a.add_argument(
+        "--bisections",
+        type=int,
+        default=None,
+        help="rounds of bisection of the marked triangles per refinement, 1-3 (default 1)",
     )
     a.add_argument(
         "--max-vertices", type=int, default=None, help="vertex limit (default 5M; exact: 1M)"
@@ -369,7 +375,16 @@ class _LevelMonitor(_Table):
 
 
 def _adapt_keywords(args) -> dict:
-    keys = ("tol", "rtol", "theta", "min_growth", "max_vertices", "max_levels", "time_budget")
+    keys = (
+        "tol",
+        "rtol",
+        "theta",
+        "min_growth",
+        "bisections",
+        "max_vertices",
+        "max_levels",
+        "time_budget",
+    )
     return {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
 
 

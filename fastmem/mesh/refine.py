@@ -73,7 +73,7 @@ from ..kernels import nvb as _kn
 from ..kernels import topology as _kt_topology
 from .mesh import Mesh, check_index_limit
 
-__all__ = ["Refinement", "dorfler_mark", "refine_marked", "refinement_edges"]
+__all__ = ["Refinement", "RefinementRounds", "dorfler_mark", "refine_marked", "refinement_edges"]
 
 logger = logging.getLogger(__name__)
 
@@ -184,6 +184,64 @@ class Refinement:
         return w[self.parent_triangle]
 
 
+class RefinementRounds:
+    """Rounds of :func:`refine_marked` one after another, seen as one refinement.
+
+    What ``refine_marked(..., bisections=b)`` returns for ``b > 1``: the same
+    transfers as :class:`Refinement` (:meth:`prolong`, :meth:`inherit`,
+    :meth:`prolongation_matrix`, ``parent_triangle``) from the first mesh to
+    the last; ``rounds`` holds the :class:`Refinement` of each round.  A
+    vertex of a later round is the midpoint of an edge of the round before,
+    so its weights on the first mesh are 3/4, 1/4 or 1/2, 1/4, 1/4.
+    """
+
+    def __init__(self, rounds):
+        self.rounds = tuple(rounds)
+        parent = self.rounds[0].parent_triangle
+        for r in self.rounds[1:]:
+            parent = parent[r.parent_triangle]
+        self.parent_triangle = _readonly(parent)
+
+    @property
+    def n_old_vertices(self) -> int:
+        """N_old, the vertices of the first mesh (they keep their indices)."""
+        return self.rounds[0].n_old_vertices
+
+    @property
+    def n_old_triangles(self) -> int:
+        """M_old, the triangles of the first mesh."""
+        return self.rounds[0].n_old_triangles
+
+    @property
+    def n_new_vertices(self) -> int:
+        """Vertices added by all rounds together."""
+        return sum(r.n_new_vertices for r in self.rounds)
+
+    @property
+    def n_children(self) -> np.ndarray:
+        """Number of descendants of each old triangle, shape (M_old,)."""
+        return np.bincount(self.parent_triangle, minlength=self.n_old_triangles)
+
+    def prolong(self, values) -> np.ndarray:
+        """Values on the last mesh of a P1 function given on the first one (exact)."""
+        for r in self.rounds:
+            values = r.prolong(values)
+        return values
+
+    def prolongation_matrix(self):
+        """Return the prolongation as a sparse matrix (N_new, N_old): ``P @ u == prolong(u)``."""
+        p = self.rounds[0].prolongation_matrix()
+        for r in self.rounds[1:]:
+            p = (r.prolongation_matrix() @ p).tocsr()
+        return p
+
+    def inherit(self, values) -> np.ndarray:
+        """Per-triangle data of the first mesh on the last: each descendant takes its value."""
+        for r in self.rounds:
+            values = r.inherit(values)
+        return values
+
+
 def _as_marked(marked, m: int) -> np.ndarray:
     """Bool mask (M,) from a mask or an index array; refuses anything else."""
     try:
@@ -243,7 +301,9 @@ def refinement_edges(mesh: Mesh, refinement_edge) -> np.ndarray:
     return arr.astype(np.int8)
 
 
-def refine_marked(mesh: Mesh, marked, refinement_edge=None, *, validate: bool = True):
+def refine_marked(
+    mesh: Mesh, marked, refinement_edge=None, *, validate: bool = True, bisections: int = 1
+):
     """Refine the marked triangles by newest-vertex bisection with conforming closure.
 
     This is a convenience wrapper around the Numba kernels of
@@ -266,6 +326,11 @@ def refine_marked(mesh: Mesh, marked, refinement_edge=None, *, validate: bool = 
         (duplicate vertices, edge checks; default).  False skips what is valid
         by construction, as :meth:`Mesh.refine` does; the cheap checks
         (areas, orientation, unused vertices) always run.
+    bisections : int
+        Rounds of refinement (default 1).  In each round after the first, the
+        children of the triangles marked in the round before are marked, so a
+        marked triangle is bisected at least ``bisections`` times (2: into four
+        or more), as the adaptive loop's ``bisections`` option does.
 
     Returns
     -------
@@ -274,9 +339,10 @@ def refine_marked(mesh: Mesh, marked, refinement_edge=None, *, validate: bool = 
         triangle lists its newest vertex first (refinement edge = local edge 0).
         Its ``parent`` is None (the parent transfers of :mod:`fastmem.solver.nested`
         assume red refinement): move data with ``transfer``.
-    transfer : Refinement
+    transfer : Refinement or RefinementRounds
         Parent edges of the new vertices, parent triangles of the new
-        triangles, new boundary vertices; :meth:`Refinement.prolong`.
+        triangles, new boundary vertices; :meth:`Refinement.prolong`.  With
+        ``bisections > 1`` a :class:`RefinementRounds` over the rounds.
 
     Examples
     --------
@@ -292,6 +358,19 @@ def refine_marked(mesh: Mesh, marked, refinement_edge=None, *, validate: bool = 
     if not isinstance(validate, (bool, np.bool_)):
         raise InputTypeError(f"validate must be True or False, got {validate!r}")
     mask = _as_marked(marked, mesh.n_triangles)
+    if isinstance(bisections, (bool, np.bool_)) or not isinstance(bisections, (int, np.integer)):
+        raise InputTypeError(f"bisections must be an integer >= 1, got {bisections!r}")
+    if bisections < 1:
+        raise ParameterError(f"bisections must be >= 1, got {bisections}")
+    if bisections > 1:
+        rounds = []
+        for k in range(int(bisections)):
+            mesh, one = refine_marked(
+                mesh, mask, refinement_edge if k == 0 else None, validate=validate
+            )
+            rounds.append(one)
+            mask = mask[one.parent_triangle]  # the children of the marked triangles
+        return mesh, RefinementRounds(rounds)
     ref = refinement_edges(mesh, refinement_edge)
     edges, tri_edges = mesh.edges, mesh.triangle_edges
     bisected = np.flatnonzero(_kn.closure(tri_edges, mesh.edge_triangles, ref, mask))

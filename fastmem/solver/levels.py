@@ -98,17 +98,61 @@ def _chain(scene, options, init, timings):
     return chain + [scene]
 
 
-def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None) -> Result:
+def _multigrid(options, sc, transfers):
+    """Choose the linear step's multigrid for level scene ``sc`` from the chain ``transfers``.
+
+    ``transfers``: interior interpolations onto ``sc``'s mesh from the meshes before it,
+    finest first (with ``multigrid="algebraic"`` only the link from the level below, for
+    the two-grid cycle).  Returns ``(prolongation, used)``: what :func:`newton_min` takes as
+    ``prolongation`` and the name recorded in the level's info.
+    """
+    multigrid = options.inner.multigrid
+    if not transfers:
+        return None, None
+    geometric = multigrid == "geometric" or (
+        multigrid == "auto" and sc.mesh.interior_vertices.size >= GEOMETRIC_MIN_UNKNOWNS
+    )
+    if _two_grid(options, sc):
+        if geometric:
+            # the decoupled CGs' geometric multigrid over the whole chain
+            # (fastmem.linalg.gmg.NestedMG)
+            return [NestedChain(transfers)], "geometric"
+        # the decoupled CG's two-grid cycle for s (fastmem.linalg.amg.TwoGridLaplacian),
+        # handed over as a list that newton_min empties: the step's two-grid
+        # cycle is then its only owner and can free it (TwoGridLaplacian.release)
+        return [transfers[0]], "two-grid"
+    if _general_cg(options, sc) and geometric:
+        # the general path's CG: the chain's block interpolations (GeneralCG)
+        return [NestedChain(transfers)], "geometric"
+    return None, None
+
+
+def keeps_chain(options, scene) -> bool:
+    """Whether the levels of ``scene``'s solve build multigrid on a chain of interpolations."""
+    return options.inner.multigrid != "algebraic" and (
+        _two_grid(options, scene) or _general_cg(options, scene)
+    )
+
+
+def solve_levels(
+    scene, options, init, timings, prolonged=False, disc_hint=None, transfers=None
+) -> Result:
     """Nested iteration over the coarse chain, then Newton-min on ``scene``: the Result.
 
     ``prolonged``: ``init`` was prolonged from a coarser mesh (the adaptive loop of
     :mod:`fastmem.adapt.loop`), so its first active set is chosen as on the levels of nested
     iteration (:func:`fastmem.solver.nested.warm_active_set`); ``disc_hint`` is then the
     eta_disc predicted for ``scene`` (used like the prediction from a coarser level).
+
+    ``transfers``: a list of the interior interpolations onto ``scene``'s mesh from the
+    meshes it was refined from, finest first (the adaptive loop's chain).  The first
+    level's multigrid is built on it, as a nested level's is on the coarse chain; the
+    interpolations of nested iteration are added to it in place, so that afterwards it
+    is the chain of ``scene``'s mesh.  None: a chain of this solve's own.
     """
     levels = _chain(scene, options, init, timings)
-    multigrid = options.inner.multigrid
-    transfers = []  # interior interpolations of the chain so far, finest first
+    # interior interpolations of the chain so far, finest first
+    transfers = [] if transfers is None else transfers
     rows = new_history()
     infos, iterates = [], []
     triple, out = init, None
@@ -117,32 +161,23 @@ def solve_levels(scene, options, init, timings, prolonged=False, disc_hint=None)
         t0 = time.perf_counter()
         hint, slack = (disc_hint if lev == 0 else None), 1.0
         prolongation, used = None, None
+        if lev == 0 and init is not None:
+            # the adaptive loop's chain (or none): the first level's multigrid
+            prolongation, used = _multigrid(options, sc, transfers)
         if lev > 0:
             coarse = levels[lev - 1]
             mat = interpolation_matrix(coarse.mesh, sc.mesh)
             triple = prolong_triple(sc, coarse, triple, mat)
-            ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
-            geometric = multigrid == "geometric" or (
-                multigrid == "auto" and ii.size >= GEOMETRIC_MIN_UNKNOWNS
-            )
-            if _two_grid(options, sc):
-                if multigrid != "algebraic":
+            if _two_grid(options, sc) or _general_cg(options, sc):
+                ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
+                link = mat[ii][:, ic].tocsr()
+                if keeps_chain(options, sc):
                     # this level's interpolation joins those of the coarser levels
-                    transfers.insert(0, mat[ii][:, ic].tocsr())
-                if geometric:
-                    # the decoupled CGs' geometric multigrid over the whole chain
-                    # (fastmem.linalg.gmg.NestedMG)
-                    prolongation, used = [NestedChain(transfers)], "geometric"
-                else:
-                    # the decoupled CG's two-grid cycle for s (fastmem.linalg.amg.TwoGridLaplacian),
-                    # handed over as a list that newton_min empties: the step's two-grid
-                    # cycle is then its only owner and can free it (TwoGridLaplacian.release)
-                    prolongation, used = [mat[ii][:, ic].tocsr()], "two-grid"
-            elif _general_cg(options, sc) and multigrid != "algebraic":
-                transfers.insert(0, mat[ii][:, ic].tocsr())
-                if geometric:
-                    # the general path's CG: the chain's block interpolations (GeneralCG)
-                    prolongation, used = [NestedChain(transfers)], "geometric"
+                    transfers.insert(0, link)
+                    prolongation, used = _multigrid(options, sc, transfers)
+                else:  # "algebraic": the decoupled CG's two-grid cycle only
+                    prolongation, used = _multigrid(options, sc, [link])
+                del link
             del mat, coarse
             h_ratio = sc.mesh.diameters.max() / levels[lev - 1].mesh.diameters.max()
             hint = None if out.eta_disc is None else out.eta_disc * h_ratio

@@ -202,6 +202,9 @@ class AdaptOptions(_Frozen):
     #: each refinement makes at least this many times the vertices (more marked than
     #: Dörfler's set when it falls short; :mod:`fastmem.adapt.loop`, MARK)
     min_growth: float = 1.0
+    #: rounds of bisection per step: the children of marked triangles are marked again
+    #: (:func:`fastmem.mesh.refine.refine_marked`'s ``bisections``)
+    bisections: int = 1
     max_vertices: int | None = None
     max_levels: int = 100
     time_budget: float | None = None
@@ -217,10 +220,19 @@ class AdaptOptions(_Frozen):
             return value
         if name == "min_growth":
             value = _number(name, value)
-            if not 1.0 <= value <= 2.0:
+            if not 1.0 <= value <= 4.0:
                 raise ParameterError(
-                    f"min_growth must be in [1, 2] (1: Dörfler's mesh as it is; one round of "
-                    f"bisection at most doubles the vertices), got {value!r}"
+                    f"min_growth must be in [1, 4] (1: Dörfler's mesh as it is; one round of "
+                    f"bisection at most doubles the vertices, two rounds quadruple them), "
+                    f"got {value!r}"
+                )
+            return value
+        if name == "bisections":
+            value = _number(name, value, integer=True)
+            if not 1 <= value <= 3:
+                raise ParameterError(
+                    f"bisections must be 1, 2 or 3 (rounds of bisection per refinement), "
+                    f"got {value!r}"
                 )
             return value
         if name in ("max_vertices", "max_levels") and value is not None:
@@ -233,6 +245,11 @@ class AdaptOptions(_Frozen):
         super().__post_init__()
         if self.tol is None and self.rtol is None:
             raise ParameterError("adaptive refinement needs tol or rtol (or both)")
+        if self.min_growth > 2.0**self.bisections:
+            raise ParameterError(
+                f"min_growth={self.min_growth:g} needs bisections >= 2: {self.bisections} "
+                f"round(s) of bisection make at most {2**self.bisections} times the vertices"
+            )
 
 
 #: Keywords of :class:`AdaptOptions` other than the tolerances, with the values that mean
@@ -240,6 +257,7 @@ class AdaptOptions(_Frozen):
 _ADAPT_ONLY = {
     "theta": None,
     "min_growth": None,
+    "bisections": None,
     "max_vertices": None,
     "max_levels": None,
     "time_budget": None,

@@ -545,3 +545,50 @@ def test_dorfler_refuses_bad_theta(theta):
 def test_dorfler_refuses_bad_indicators(values, error, match):
     with pytest.raises(error, match=match):
         dorfler_mark(values, 0.5)
+
+
+# --------------------------------------------------------------------------- bisections > 1
+def _marked_mask(mesh, seed=5, p=0.1):
+    return np.random.default_rng(seed).random(mesh.n_triangles) < p
+
+
+def test_two_bisections_are_two_rounds_on_the_children():
+    mesh = perturbed_square(6, 0.2, seed=2)
+    mask = _marked_mask(mesh)
+    fine, rounds = refine_marked(mesh, mask, bisections=2)
+    mid, first = refine_marked(mesh, mask)
+    ref2, second = refine_marked(mid, mask[first.parent_triangle])
+    assert_array_equal(fine.vertices, ref2.vertices)
+    assert_array_equal(fine.triangles, ref2.triangles)
+    assert rounds.n_old_vertices == mesh.n_vertices
+    assert rounds.n_new_vertices == fine.n_vertices - mesh.n_vertices
+    assert_array_equal(rounds.parent_triangle, first.parent_triangle[second.parent_triangle])
+    # every marked triangle is bisected at least twice: four or more descendants
+    assert rounds.n_children[mask].min() >= 4
+    assert rounds.n_children.sum() == fine.n_triangles
+
+
+@pytest.mark.parametrize("bisections", [2, 3])
+def test_rounds_prolong_linear_functions_exactly(bisections):
+    mesh = perturbed_square(5, 0.2, seed=4)
+    fine, rounds = refine_marked(mesh, _marked_mask(mesh, p=0.2), bisections=bisections)
+    lin = mesh.vertices @ np.array([1.7, -0.4]) + 0.3
+    assert_allclose(rounds.prolong(lin), fine.vertices @ np.array([1.7, -0.4]) + 0.3, atol=1e-14)
+    u = np.random.default_rng(1).random(mesh.n_vertices)
+    assert_allclose(rounds.prolongation_matrix() @ u, rounds.prolong(u), rtol=0, atol=1e-15)
+    assert_array_equal(rounds.prolong(u)[: mesh.n_vertices], u)
+    w = np.arange(mesh.n_triangles, dtype=float)
+    assert_array_equal(rounds.inherit(w), w[rounds.parent_triangle])
+    # the weights of a vertex of a later round are positive and sum to one
+    p = rounds.prolongation_matrix()
+    assert p.data.min() > 0.0
+    assert_allclose(np.asarray(p.sum(axis=1)).ravel(), 1.0, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize(
+    ("value", "error"), [(0, ParameterError), (1.5, InputTypeError), (True, InputTypeError)]
+)
+def test_bad_bisections_are_named(value, error):
+    mesh = fm.Mesh.square(2)
+    with pytest.raises(error, match="bisections"):
+        refine_marked(mesh, [0], bisections=value)
