@@ -16,7 +16,7 @@ fresh scene on the mesh (loads, assembly, nested iteration, bound); the mesh
 and its topology are built before the timing (``mesh_seconds`` on its own).
 
 Adaptive refinement: ``fm.solve(scene, tol=tol, theta=--theta,
-min_growth=--min-growth)`` from the
+min_growth=--min-growth, bisections=--bisections)`` from the
 coarsest uniform mesh (n = ``--start``), the public call, timed as a whole
 (the mesh of n = ``--start`` built inside the timing).  Tolerances: by
 default the bound eta reached by uniform refinement (times 1 + 1e-6, so that
@@ -303,6 +303,7 @@ def _adaptive_call(case, tol, a):
         tol=tol,
         theta=a.theta,
         min_growth=a.min_growth,
+        bisections=a.bisections,
         max_vertices=a.max_vertices,
     )
 
@@ -440,6 +441,7 @@ def trace(case, tol, a):
                 tol=tol,
                 theta=a.theta,
                 min_growth=a.min_growth,
+        bisections=a.bisections,
                 max_vertices=a.max_vertices,
                 max_levels=k,
             )
@@ -663,6 +665,7 @@ def big_worker(a):
         tol=a.big_tol,
         theta=a.theta,
         min_growth=a.min_growth,
+        bisections=a.bisections,
         max_vertices=a.big_max_vertices,
         time_budget=a.big_time_budget,
         level_monitor=monitor,
@@ -695,6 +698,8 @@ def big_stage(a):
         a.theta,
         "--min-growth",
         a.min_growth,
+        "--bisections",
+        a.bisections,
         "--big-tol",
         a.big_tol,
         "--big-max-vertices",
@@ -760,6 +765,9 @@ def main(argv=None):
     p.add_argument(
         "--min-growth", type=float, default=1.0, help="least vertex growth per refinement"
     )
+    p.add_argument(
+        "--bisections", type=int, default=2, help="rounds of bisection per refinement"
+    )
     p.add_argument("--tols-lshape", type=float, nargs="*", default=None)
     p.add_argument("--tols-manufactured", type=float, nargs="*", default=None)
     p.add_argument("--tol-n-lshape", type=int, nargs="*", default=None)
@@ -802,6 +810,7 @@ def main(argv=None):
             "start",
             "theta",
             "min_growth",
+            "bisections",
             "repeat",
             "budget",
             "max_vertices",

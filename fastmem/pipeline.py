@@ -192,10 +192,13 @@ def solve(
         instead of stopping at the resolution limit.
     bisections : int
         Rounds of newest-vertex bisection per refinement (1, 2 or 3; default
-        1): from the second round on the children of the marked triangles are
+        2): from the second round on the children of the marked triangles are
         marked again, so every marked triangle is bisected at least this many
-        times.  Each step then grows the mesh more (``min_growth`` up to
-        ``2**bisections``), so the loop makes fewer meshes.
+        times (each into four or more with 2).  Each step then grows the mesh
+        more (``min_growth`` up to ``2**bisections``), so the loop makes fewer
+        meshes and solves fewer vertices in all: on the L-shape
+        (``f=(-1, -1)``, ``tol=3.44e-3``) 15 meshes and 513k vertices in all
+        against 29 meshes and 771k with one round (2026-12-02, 2 cores).
     max_vertices : int
         Stop (``converged=False``) instead of solving a mesh with more
         vertices (default :data:`fastmem.solver.options.MAX_VERTICES`, 5M;

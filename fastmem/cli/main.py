@@ -282,7 +282,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "--bisections",
         type=int,
         default=None,
-        help="rounds of bisection of the marked triangles per refinement, 1-3 (default 1)",
+        help="rounds of bisection of the marked triangles per refinement, 1-3 (default 2)",
     )
     a.add_argument(
         "--max-vertices", type=int, default=None, help="vertex limit (default 5M; exact: 1M)"

@@ -302,7 +302,13 @@ def refinement_edges(mesh: Mesh, refinement_edge) -> np.ndarray:
 
 
 def refine_marked(
-    mesh: Mesh, marked, refinement_edge=None, *, validate: bool = True, bisections: int = 1
+    mesh: Mesh,
+    marked,
+    refinement_edge=None,
+    *,
+    validate: bool = True,
+    bisections: int = 1,
+    min_diameter: float = 0.0,
 ):
     """Refine the marked triangles by newest-vertex bisection with conforming closure.
 
@@ -330,7 +336,10 @@ def refine_marked(
         Rounds of refinement (default 1).  In each round after the first, the
         children of the triangles marked in the round before are marked, so a
         marked triangle is bisected at least ``bisections`` times (2: into four
-        or more), as the adaptive loop's ``bisections`` option does.
+        or more), as the adaptive loop's ``bisections`` option asks.
+    min_diameter : float
+        With ``bisections > 1``: children with at most this diameter are not
+        marked again (the adaptive loop's resolution limit).
 
     Returns
     -------
@@ -370,6 +379,8 @@ def refine_marked(
             )
             rounds.append(one)
             mask = mask[one.parent_triangle]  # the children of the marked triangles
+            if min_diameter > 0.0:
+                mask &= mesh.diameters > min_diameter
         return mesh, RefinementRounds(rounds)
     ref = refinement_edges(mesh, refinement_edge)
     edges, tri_edges = mesh.edges, mesh.triangle_edges

@@ -204,7 +204,7 @@ class AdaptOptions(_Frozen):
     min_growth: float = 1.0
     #: rounds of bisection per step: the children of marked triangles are marked again
     #: (:func:`fastmem.mesh.refine.refine_marked`'s ``bisections``)
-    bisections: int = 1
+    bisections: int = 2
     max_vertices: int | None = None
     max_levels: int = 100
     time_budget: float | None = None

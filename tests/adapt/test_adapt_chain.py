@@ -114,7 +114,7 @@ def test_min_growth_above_two_with_two_bisections():
     assert ratios
     assert min(ratios) >= 2.5 * 0.94, ratios
     with pytest.raises(fm.errors.ParameterError, match="min_growth"):
-        fm.solve(_default(fm.Mesh.lshape(8)), tol=tol, min_growth=2.5)  # one round: at most 2
+        fm.solve(_default(fm.Mesh.lshape(8)), tol=tol, min_growth=2.5, bisections=1)
 
 
 @pytest.mark.parametrize("value", [0, 4, 1.5])
@@ -130,3 +130,34 @@ def test_two_bisections_in_the_obstacle_loop():
     assert r.converged
     assert r.parameters["adaptivity"]["bisections"] == 2
     assert r.adaptivity["n_vertices"].size >= 2
+
+
+@pytest.mark.parametrize("fraction", [0.1, 0.4])
+def test_two_round_counts_land_near_the_aim(fraction):
+    """The top set searched for with two rounds adds the vertices asked for (within 3 %)."""
+    mesh, _, _ = _refined_chain(3)
+    eta2 = np.random.default_rng(5).lognormal(size=mesh.n_triangles)
+    count = afem._Counter(mesh, 2)
+    dorfler = afem.dorfler_mark(eta2, 0.5)
+    k0, n0 = int(dorfler.sum()), count.exact(dorfler)
+    want = fraction * mesh.n_vertices
+    marked = afem._mark_vertices(mesh, eta2, want, k0, n0, count)
+    marked = afem._recount(mesh, eta2, want, marked, count, [(k0, n0)])
+    assert eta2[marked].min() >= eta2[~marked].max()  # a top set
+    fine, rounds = refine_marked(mesh, marked, bisections=2)
+    assert abs(rounds.n_new_vertices - want) <= afem._ROUNDS_TOL * want, (
+        rounds.n_new_vertices,
+        want,
+    )
+    assert count.refine(marked)[0].n_vertices == fine.n_vertices
+
+
+def test_later_rounds_stop_at_a_diameter():
+    mesh = fm.Mesh.square(8)
+    marked = np.ones(mesh.n_triangles, dtype=bool)
+    limit = 1.01 * mesh.diameters.max() / 2**0.5  # the first round makes children of this size
+    fine, rounds = refine_marked(mesh, marked, bisections=2, min_diameter=limit)
+    once, _ = refine_marked(mesh, marked)
+    assert fine.n_triangles == once.n_triangles  # no second round below the diameter
+    free, _ = refine_marked(mesh, marked, bisections=2)
+    assert free.n_triangles == 4 * mesh.n_triangles

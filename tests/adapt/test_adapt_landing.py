@@ -113,7 +113,9 @@ def test_landing_does_not_overshoot_and_still_converges(monkeypatch):
                 land["vertices"] - table["n_vertices"][k],
                 land["aim"] - table["n_vertices"][k],
             )
-            assert abs(new - aimed_new) <= max(2 * afem._LANDING_TOL * aimed_new, 3), land
+            # one round: the closure count; more: a measured ratio, one more search
+            within = 2 * afem._LANDING_TOL if info["bisections"] == 1 else afem._ROUNDS_TOL
+            assert abs(new - aimed_new) <= max(within * aimed_new, 3), land
         # the same meshes as Dörfler's up to the first landing; then no more vertices
         first = info["landings"][0]["level"] if info["landings"] else len(table["level"])
         np.testing.assert_array_equal(
@@ -130,8 +132,9 @@ def test_min_growth_makes_fewer_larger_meshes():
     the top-k search's tolerance), with fewer meshes than Dörfler's own growth; the bound of
     the returned triple still meets the tolerance."""
     tol = 1.2e-2
-    plain = fm.solve(_default(fm.Mesh.lshape(8)), tol=tol)
-    grown = fm.solve(_default(fm.Mesh.lshape(8)), tol=tol, min_growth=1.5)
+    # one round of bisection per refinement (with two, Dörfler's set grows 1.6-1.9 times)
+    plain = fm.solve(_default(fm.Mesh.lshape(8)), tol=tol, bisections=1)
+    grown = fm.solve(_default(fm.Mesh.lshape(8)), tol=tol, min_growth=1.5, bisections=1)
     assert plain.parameters["adaptivity"]["min_growth"] == 1.0
     assert grown.parameters["adaptivity"]["min_growth"] == 1.5
     for r in (plain, grown):
@@ -149,7 +152,7 @@ def test_min_growth_makes_fewer_larger_meshes():
 @pytest.mark.parametrize("value", [0.5, 2.5])
 def test_min_growth_out_of_range_is_named(value):
     with pytest.raises(fm.errors.ParameterError, match="min_growth"):
-        fm.solve(_default(fm.Mesh.lshape(8)), tol=1e-2, min_growth=value)
+        fm.solve(_default(fm.Mesh.lshape(8)), tol=1e-2, min_growth=value, bisections=1)
     with pytest.raises(fm.errors.ParameterError, match="min_growth"):
         fm.solve(_default(fm.Mesh.lshape(8)), min_growth=1.5)  # needs tol
 
