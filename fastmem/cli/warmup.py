@@ -412,14 +412,20 @@ def _precompile_classes() -> None:
     reconstruct(Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), zero, zero, zero)
 
 
-def _precompile_cycles(large: bool) -> None:
+def _precompile_cycles(large: bool, general: bool) -> None:
     """Compile the multigrid cycles' kernels (hybrid sweep, threaded products; nested MG).
 
-    The geometric multigrid's only with ``large``: ``multigrid="auto"`` takes it on
-    levels of :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices and
-    more (1.4 s of a cold first run otherwise spent on kernels a small solve never calls).
+    The hybrid sweep and the threaded products serve matrices of
+    :data:`~fastmem.linalg.sparse.THREADED_ROWS` rows and more: those of a ``large``
+    mesh, and the general path's reduced systems (up to two unknowns per vertex) from
+    half that many vertices on; a default ``fastmem run`` (16,641 vertices) never calls
+    them (0.8-1.0 s of its cold start).  The geometric multigrid's only with ``large``:
+    ``multigrid="auto"`` takes it on levels of
+    :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices and more
+    (1.4 s of a cold first run otherwise spent on kernels a small solve never calls).
     """
-    precompile()
+    if large or general:
+        precompile()
     if large:
         gmg.precompile()
 
@@ -464,7 +470,9 @@ def warm_up(
     large : bool
         Whether its mesh has at least :data:`fastmem.linalg.sparse.THREADED_ROWS`
         vertices: the active-set matrices are then built by the threaded kernels
-        of :mod:`fastmem.kernels.masked`, nested iteration takes the geometric
+        of :mod:`fastmem.kernels.masked`, sparse products and Gauss-Seidel sweeps
+        run in the kernel threads (also with ``general``: its systems have up to
+        two unknowns per vertex), nested iteration takes the geometric
         multigrid (:mod:`fastmem.kernels.mg`) and the flux reconstruction looks
         for patch classes (:func:`fastmem.kernels.flux.patch_classes`, from
         100,000 vertices on), which the tiny solves do not reach.
@@ -499,7 +507,7 @@ def warm_up(
         _precompile_rows()
         if unstructured:
             _precompile_locate()
-    _precompile_cycles(large)  # (with or without a helper: the tiny solve does not reach them)
+    _precompile_cycles(large, general)  # (the tiny solve does not reach them)
     if large:
         _precompile_masked()
         if uses_flux:

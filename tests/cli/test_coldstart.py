@@ -122,6 +122,38 @@ def test_warm_up_asks_the_helper_for_the_patch_kernel_it_needs(monkeypatch, gene
     assert not done.helper  # the stand-in started none: compiled (or loaded) here
 
 
+@pytest.mark.parametrize(
+    ("large", "general", "cycles", "nested"),
+    [(False, False, 0, 0), (False, True, 1, 0), (True, False, 1, 1)],
+)
+def test_warm_up_compiles_the_threaded_sweeps_only_for_solves_that_use_them(
+    monkeypatch, large, general, cycles, nested
+):
+    calls = {"cycles": 0, "nested": 0}
+    monkeypatch.setattr(warmup, "precompile", lambda: calls.__setitem__("cycles", 1))
+    monkeypatch.setattr(warmup.gmg, "precompile", lambda: calls.__setitem__("nested", 1))
+    warmup._precompile_cycles(large, general)
+    assert calls == {"cycles": cycles, "nested": nested}
+
+
+def test_default_run_never_calls_the_threaded_sweeps(monkeypatch):
+    """The premise of skipping them: the default scene (n = 128) stays below their sizes."""
+    from fastmem.linalg import amg, gmg, sparse
+
+    called = []
+
+    def spy(name):
+        return lambda *a, **k: called.append(name)
+
+    for module in (amg, gmg):
+        for name in ("gs_hybrid_range", "csr_matvec_range", "cross_block_dominant"):
+            monkeypatch.setattr(module, name, spy(name))
+    monkeypatch.setattr(sparse, "csr_matvec_range", spy("csr_matvec_range"))
+    r = fm.solve(fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1))
+    assert r.converged
+    assert called == []
+
+
 def test_spawn_compile_helper_refuses_an_unknown_part():
     with pytest.raises(ValueError, match="'everything'"):
         warmup.spawn_compile_helper("patches", "everything")
