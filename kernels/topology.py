@@ -37,6 +37,16 @@ __all__ = [
 #: saturation value of the int8 ``counts`` and ``forward`` of :func:`edge_topology`
 COUNT_CAP = 127
 
+#: Meshes of fewer triangles take NumPy paths that give the same arrays (vectorised
+#: sorts and counts): on them the kernels' compile time (about 2 s for the eight
+#: kernels, on the first run after an install) is far above their run time (a few
+#: milliseconds either way at 32,768 triangles, the default ``fastmem run``).
+NUMPY_BELOW = 65536
+
+
+def _small(m) -> bool:
+    return m < NUMPY_BELOW
+
 
 def edge_topology(t, n, patches=None):
     """Edges, triangle edges and edge triangles of the triangles ``t`` (M, 3) over ``n`` vertices.
@@ -74,6 +84,8 @@ def edge_topology(t, n, patches=None):
     would otherwise first-touch).
     """
     m = t.shape[0]
+    if _small(m):
+        return _edge_topology_numpy(t, n)
     if patches is None:
         ptr = vertex_patch_ptr(t, n)
         patches = (ptr, *vertex_patches(t, ptr))
@@ -119,6 +131,39 @@ def edge_topology(t, n, patches=None):
 
     run_ranges(number, chunks)
     return edges, tri_edges, et, counts, forward
+
+
+def _edge_topology_numpy(t, n):
+    """:func:`edge_topology` by a stable sort of the half-edge keys ``lo * n + hi``."""
+    m = t.shape[0]
+    t = np.asarray(t, dtype=np.int64)
+    a = t[:, [1, 2, 0]].ravel()  # half-edge 3 k + i runs from t[k, i + 1] to t[k, i + 2]
+    b = t[:, [2, 0, 1]].ravel()
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    order = np.argsort(lo * max(n, 1) + hi, kind="stable")
+    key_lo, key_hi = lo[order], hi[order]
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = (key_lo[1:] != key_lo[:-1]) | (key_hi[1:] != key_hi[:-1])
+    edge_of = np.cumsum(new) - 1
+    start = np.flatnonzero(new)
+    ne = start.size
+    edges = np.empty((ne, 2), dtype=np.int32)
+    edges[:, 0], edges[:, 1] = key_lo[start], key_hi[start]
+    tri_edges = np.empty(3 * m, dtype=np.int32)
+    tri_edges[order] = edge_of
+    count = np.bincount(edge_of, minlength=ne)
+    et = np.full((ne, 2), -1, dtype=np.int32)
+    et[:, 0] = order[start] // 3
+    two = count >= 2
+    et[two, 1] = order[start[two] + 1] // 3
+    forward = np.bincount(edge_of, weights=(a < b)[order], minlength=ne)
+    return (
+        edges,
+        tri_edges.reshape(m, 3),
+        et,
+        np.minimum(count, COUNT_CAP).astype(np.int8),
+        np.minimum(forward, COUNT_CAP).astype(np.int8),
+    )
 
 
 @jit
@@ -396,6 +441,10 @@ def vertex_patch_ptr(t, n):
     read-then-write first touch of each page cost 2 s of system time for the 134 MB
     of n = 4096 (memory the host had taken back, faulted in page by page).
     """
+    if _small(t.shape[0]):
+        ptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(np.ravel(t), minlength=n), out=ptr[1:])
+        return ptr
     ptr = zeros(n + 1, np.int64)
     _count_degrees(t, ptr[1:])
     np.cumsum(ptr[1:], out=ptr[1:])
@@ -419,6 +468,9 @@ def vertex_patches(t, ptr):
     A wrapper around the Numba kernel :func:`_fill_patches` (arrays allocated here).
     """
     m = t.shape[0]
+    if _small(m):
+        order = np.argsort(np.ravel(t), kind="stable")
+        return (order // 3).astype(np.int32), (order % 3).astype(np.int8)
     tris = zeros(3 * m, np.int32)  # first touched by two threads (_par.zeros)
     local = zeros(3 * m, np.int8)
     _fill_patches(t, ptr[:-1].copy(), tris, local)
@@ -444,6 +496,8 @@ def lumped_mass(t, areas, n):
     np.repeat(areas / 3, 3))``, so the same bits.  A wrapper around the Numba
     kernel :func:`_add_thirds` (the result is allocated here).
     """
+    if _small(t.shape[0]):
+        return np.bincount(np.ravel(t), np.repeat(areas / 3.0, 3), minlength=n)
     b = np.zeros(n)
     _add_thirds(t, areas, b)
     return b
@@ -469,11 +523,28 @@ def rectangle_triangles(nx, ny, diagonal):
     five (nx ny,) int64 temporaries and an (M, 2, 3) array that ``Mesh`` then copied.
     """
     mode = {"right": 0, "left": 1, "symmetric": 2}[diagonal]
+    if _small(2 * nx * ny):
+        return _rectangle_triangles_numpy(nx, ny, mode)
     tris = np.empty((2 * nx * ny, 3), dtype=np.int64)
     parallel_for(
         _rectangle_triangles_rows, ny, nx, ny, mode, tris, grain=max(1, GRAIN // max(nx, 1))
     )
     return tris
+
+
+def _rectangle_triangles_numpy(nx, ny, mode):
+    j, i = np.divmod(np.arange(nx * ny, dtype=np.int64), nx)
+    a = j * (nx + 1) + i
+    if mode == 2:
+        slash = (2 * j + 1 - ny) * (2 * i + 1 - nx) >= 0
+    else:
+        slash = np.full(a.size, mode == 0)
+    tris = np.empty((nx * ny, 2, 3), dtype=np.int64)
+    tris[:, 0, 0], tris[:, 0, 1] = a, a + 1
+    tris[:, 0, 2] = np.where(slash, a + (nx + 2), a + (nx + 1))
+    tris[:, 1, 0] = np.where(slash, a, a + 1)
+    tris[:, 1, 1], tris[:, 1, 2] = a + (nx + 2), a + (nx + 1)
+    return tris.reshape(2 * nx * ny, 3)
 
 
 @jit
@@ -518,6 +589,8 @@ def triangle_checks(vertices, triangles, min_h2, tol2, used=None):
     if used is None:
         used = np.zeros(vertices.shape[0], dtype=np.uint8)
     m = triangles.shape[0]
+    if _small(m):
+        return _triangle_checks_numpy(vertices, triangles, min_h2, tol2, used)
     area2 = np.empty(m)
     h2 = np.empty(m)
     chunks = ranges(m, n_threads(), GRAIN)
@@ -530,6 +603,27 @@ def triangle_checks(vertices, triangles, min_h2, tol2, used=None):
         chunks,
     )
     return area2, h2, per_chunk.sum(axis=0)
+
+
+def _triangle_checks_numpy(vertices, triangles, min_h2, tol2, used):
+    i0, i1, i2 = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    used[np.ravel(triangles)] = 1
+    x0, y0 = vertices[i0, 0], vertices[i0, 1]
+    ax, ay = vertices[i1, 0] - x0, vertices[i1, 1] - y0
+    bx, by = vertices[i2, 0] - x0, vertices[i2, 1] - y0
+    area2 = ax * by - bx * ay
+    cx, cy = bx - ax, by - ay
+    h2 = np.maximum(np.maximum(ax * ax + ay * ay, bx * bx + by * by), cx * cx + cy * cy)
+    counts = np.array(
+        [
+            np.count_nonzero((i0 == i1) | (i1 == i2) | (i0 == i2)),
+            np.count_nonzero(h2 < min_h2),
+            np.count_nonzero(np.abs(area2) <= tol2 * h2),
+            np.count_nonzero(area2 < 0),
+        ],
+        dtype=np.int64,
+    )
+    return area2, h2, counts
 
 
 @jit

@@ -1,4 +1,9 @@
-"""Numba kernels of the mesh topology and of the history rows against plain NumPy references."""
+"""Numba kernels of the mesh topology and of the history rows against plain NumPy references.
+
+Meshes below :data:`fastmem.kernels.topology.NUMPY_BELOW` triangles take NumPy paths
+instead of the kernels: every topology test runs twice, once with the kernels forced
+and once with the NumPy paths forced, against the same references.
+"""
 
 import numpy as np
 import pytest
@@ -9,6 +14,15 @@ import fastmem as fm
 from fastmem.mesh.refine import refine_marked
 
 _EV = np.array([[1, 2], [2, 0], [0, 1]])
+
+
+@pytest.fixture(autouse=True, params=["kernels", "numpy"])
+def topology_path(request, monkeypatch):
+    """Force the kernels (NUMPY_BELOW = 0) or the NumPy paths (any size) of the topology."""
+    from fastmem.kernels import topology as kt
+
+    monkeypatch.setattr(kt, "NUMPY_BELOW", 0 if request.param == "kernels" else 2**62)
+    return request.param
 
 
 def _reference_topology(t, n):
@@ -75,13 +89,13 @@ def test_edge_topology_same_arrays_for_any_chunking(monkeypatch, threads, grain)
     """The buckets are sorted and numbered over vertex ranges: any split, same arrays."""
     from fastmem.kernels import topology as kt
 
-    for mesh in _meshes():
+    meshes = _meshes()  # built before the chunking changes
+    monkeypatch.setattr(kt, "GRAIN", grain)
+    monkeypatch.setattr(kt, "n_threads", lambda threads=threads: threads)
+    for mesh in meshes:
         t = np.asarray(mesh.triangles)
         want = _reference_topology(t, mesh.n_vertices)
-        monkeypatch.setattr(kt, "GRAIN", grain)
-        monkeypatch.setattr(kt, "n_threads", lambda threads=threads: threads)
         got = kt.edge_topology(t, mesh.n_vertices)
-        monkeypatch.undo()
         for g, w in zip(got, want, strict=True):
             np.testing.assert_array_equal(g, w)
         assert [g.dtype for g in got] == [np.int32, np.int32, np.int32, np.int8, np.int8]
@@ -185,3 +199,43 @@ def test_vertex_patch_ptr_matches_bincount(mesh):
     want = np.r_[0, np.cumsum(np.bincount(t.ravel(), minlength=mesh.n_vertices))]
     assert got.dtype == np.int64
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("mesh", _meshes(), ids=["square", "lshape", "red", "nvb", "permuted"])
+def test_vertex_patches_and_lumped_mass_match_numpy(mesh):
+    from fastmem.kernels import topology as kt
+
+    t = np.asarray(mesh.triangles)
+    ptr = kt.vertex_patch_ptr(t, mesh.n_vertices)
+    tris, local = kt.vertex_patches(t, ptr)
+    order = np.argsort(t.ravel(), kind="stable")
+    assert tris.dtype == np.int32
+    assert local.dtype == np.int8
+    np.testing.assert_array_equal(tris, order // 3)
+    np.testing.assert_array_equal(local, order % 3)
+    areas = mesh.areas
+    b = kt.lumped_mass(t, areas, mesh.n_vertices)
+    want = np.bincount(t.ravel(), np.repeat(areas / 3, 3), minlength=mesh.n_vertices)
+    assert b.tobytes() == want.tobytes()  # the same additions in the same order
+
+
+def test_small_meshes_take_the_numpy_paths(monkeypatch, topology_path):
+    """Below NUMPY_BELOW triangles no topology kernel runs (none compiles on a first run)."""
+    from fastmem.kernels import topology as kt
+
+    monkeypatch.setattr(kt, "NUMPY_BELOW", 65536)
+    ran = []
+    for name in (
+        "_count_edges",
+        "_number_edges",
+        "_count_degrees",
+        "_fill_patches",
+        "_add_thirds",
+        "_rectangle_triangles_rows",
+        "_triangle_checks_range",
+    ):
+        monkeypatch.setattr(kt, name, lambda *a, name=name, **k: ran.append(name))
+    mesh = fm.Mesh.square(128)  # 32,768 triangles: the default fastmem run
+    assert mesh.n_triangles < kt.NUMPY_BELOW
+    _ = mesh.edges, mesh.lumped_mass, mesh.patch_ptr
+    assert ran == []
