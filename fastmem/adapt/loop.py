@@ -125,7 +125,7 @@ import numpy as np
 from ..estimators.terms import refinement_indicators
 from ..fem.scene import Scene
 from ..kernels import nvb as _kn
-from ..mesh.refine import dorfler_mark, refine_marked, refinement_edges
+from ..mesh.refine import RefinementRounds, dorfler_mark, refine_marked, refinement_edges
 from ..solver.levels import keeps_chain, solve_levels
 from ..solver.nested import NESTED_MIN_VERTICES
 
@@ -380,8 +380,9 @@ class _Counter:
     The closure kernel of :func:`~fastmem.mesh.refine.refine_marked` counts the edges
     that the first round bisects, without refining.  With more rounds (whose closures
     depend on the meshes of the rounds before) the count is that number times the ratio
-    of all rounds' vertices to the first round's, measured by the last refinement made
-    (:meth:`refine`; :meth:`exact` makes one to measure it).
+    of all rounds' vertices to the first round's, measured by the last exact count.
+    :meth:`exact` counts by making every round but the last (the last one's closure
+    is counted on the mesh before it) and keeps those rounds for :meth:`refine`.
     """
 
     def __init__(self, mesh, bisections=1):
@@ -389,36 +390,49 @@ class _Counter:
         self.limit = resolution_limit(mesh)  # later rounds do not go below it either
         self.ref = refinement_edges(mesh, None)
         self.ratio = 1.0
-        self.made = None  # (mask, fine mesh, refinement) of the last refinement
+        self.made = None  # (mask, rounds but the last: [(mesh, Refinement)], last mask)
+
+    def _closure_count(self, mesh, mask, ref=None) -> int:
+        ref = refinement_edges(mesh, None) if ref is None else ref
+        return int(
+            np.count_nonzero(_kn.closure(mesh.triangle_edges, mesh.edge_triangles, ref, mask))
+        )
 
     def first_round(self, mask) -> int:
-        mesh = self.mesh
-        closure = _kn.closure(mesh.triangle_edges, mesh.edge_triangles, self.ref, mask)
-        return int(np.count_nonzero(closure))
+        return self._closure_count(self.mesh, mask, self.ref)
 
     def __call__(self, mask, want=None) -> int:
         n1 = self.first_round(mask)
         return n1 if self.bisections == 1 else int(round(n1 * self.ratio))
 
-    def exact(self, mask) -> int:
-        """Count the vertices refining ``mask`` adds by refining (kept for :meth:`refine`)."""
-        if self.bisections == 1:
-            return self.first_round(mask)
-        fine, _ = self.refine(mask)
-        return fine.n_vertices - self.mesh.n_vertices
-
-    def refine(self, mask):
-        """``refine_marked(mesh, mask, ...)``; updates the ratio of the counts."""
+    def _rounds_but_last(self, mask):
         if self.made is not None and self.made[0] is mask:
             return self.made[1], self.made[2]
-        fine, refinement = refine_marked(
-            self.mesh, mask, validate=False, bisections=self.bisections, min_diameter=self.limit
-        )
-        if self.bisections > 1:
-            n1 = refinement.rounds[0].n_new_vertices
-            self.ratio = (fine.n_vertices - self.mesh.n_vertices) / max(n1, 1)
-        self.made = (mask, fine, refinement)
-        return fine, refinement
+        rounds, cur, m = [], self.mesh, mask
+        for _ in range(self.bisections - 1):
+            cur, one = refine_marked(cur, m, validate=False)
+            rounds.append((cur, one))
+            m = m[one.parent_triangle] & (cur.diameters > self.limit)
+        self.made = (mask, rounds, m)
+        return rounds, m
+
+    def exact(self, mask) -> int:
+        """Count the vertices refining ``mask`` adds (the rounds made are kept)."""
+        if self.bisections == 1:
+            return self.first_round(mask)
+        rounds, last = self._rounds_but_last(mask)
+        before = rounds[-1][0]
+        n = before.n_vertices - self.mesh.n_vertices + self._closure_count(before, last)
+        self.ratio = n / max(rounds[0][1].n_new_vertices, 1)
+        return n
+
+    def refine(self, mask):
+        """``refine_marked(mesh, mask, bisections=...)``, from the kept rounds if any."""
+        if self.bisections == 1:
+            return refine_marked(self.mesh, mask, validate=False)
+        rounds, last = self._rounds_but_last(mask)
+        fine, one = refine_marked(rounds[-1][0], last, validate=False)
+        return fine, RefinementRounds([r for _, r in rounds] + [one])
 
 
 def _mark_vertices(mesh, eta2, want, k0, n0, count=None):
