@@ -18,6 +18,8 @@ vertex each), so the caller must keep ``3 M`` and ``n`` below ``2**31``
 :func:`vertex_patches` are int32 (triangles) and int8 (local index 0, 1, 2).
 """
 
+import contextlib
+
 import numba
 import numpy as np
 
@@ -46,6 +48,21 @@ NUMPY_BELOW = 65536
 
 def _small(m) -> bool:
     return m < NUMPY_BELOW
+
+
+@contextlib.contextmanager
+def kernel_paths():
+    """Within the block every mesh takes the kernels, whatever its size.
+
+    For :func:`fastmem.warm_up` with ``large``: it compiles the kernels on a tiny
+    mesh, with the argument types a large mesh passes.
+    """
+    global NUMPY_BELOW
+    saved, NUMPY_BELOW = NUMPY_BELOW, 0
+    try:
+        yield
+    finally:
+        NUMPY_BELOW = saved
 
 
 def edge_topology(t, n, patches=None):

@@ -175,11 +175,8 @@ def kernels_cached(which: str = "pipeline") -> bool | None:
         if which == "all":
             kernels = [d for d in _dispatchers() if d._can_compile]
         else:
-            kernels = [
-                flux._reconstruct_chunk,
-                assembly._stiffness_csr_range,
-                topology._number_edges,
-            ]
+            # (no mesh-topology kernel: small meshes build their topology with NumPy)
+            kernels = [flux._reconstruct_chunk, flux._reduced_solve2, assembly._stiffness_csr_range]
         return all(_cached(d) for d in kernels)
     except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
         return None
@@ -392,6 +389,18 @@ def _precompile_masked() -> None:
     ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)
 
 
+def _precompile_topology() -> None:
+    """Compile the mesh-topology kernels (meshes of 65,536 triangles and more).
+
+    Smaller meshes build their topology with NumPy
+    (:data:`fastmem.kernels.topology.NUMPY_BELOW`), so the tiny solves never reach
+    the kernels: here a tiny mesh takes them, with the types a ``Mesh`` passes.
+    """
+    with topology.kernel_paths():
+        mesh = Mesh.square(4)
+        _ = mesh.edges, mesh.lumped_mass, mesh.patch_ptr
+
+
 def _precompile_sums() -> None:
     """Compile the threaded sums of the bound's maps (meshes of 32,768 triangles and more)."""
     maps = [np.zeros(1) for _ in range(6)]
@@ -510,6 +519,7 @@ def warm_up(
     _precompile_cycles(large, general)  # (the tiny solve does not reach them)
     if large:
         _precompile_masked()
+        _precompile_topology()
         if uses_flux:
             _precompile_sums()
     if uses_flux and large:

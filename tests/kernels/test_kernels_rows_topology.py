@@ -239,3 +239,25 @@ def test_small_meshes_take_the_numpy_paths(monkeypatch, topology_path):
     assert mesh.n_triangles < kt.NUMPY_BELOW
     _ = mesh.edges, mesh.lumped_mass, mesh.patch_ptr
     assert ran == []
+
+
+def test_kernel_paths_force_the_kernels_and_restore_the_threshold(monkeypatch, topology_path):
+    """warm_up(large=True) compiles the kernels on a tiny mesh inside kernel_paths()."""
+    from fastmem.kernels import topology as kt
+
+    calls = []
+    count_edges = kt._count_edges
+    monkeypatch.setattr(kt, "_count_edges", lambda *a: calls.append(1) or count_edges(*a))
+    small = fm.Mesh.square(4)
+    t = np.asarray(small.triangles)
+    before = kt.NUMPY_BELOW
+    with kt.kernel_paths():
+        assert kt.NUMPY_BELOW == 0
+        got = kt.edge_topology(t, small.n_vertices)
+    assert calls  # the kernels ran on a 32-triangle mesh
+    assert kt.NUMPY_BELOW == before
+    for g, w in zip(got, _reference_topology(t, small.n_vertices), strict=True):
+        np.testing.assert_array_equal(g, w)
+    calls.clear()
+    kt.edge_topology(t, small.n_vertices)
+    assert bool(calls) == (topology_path == "kernels")  # the threshold is back
