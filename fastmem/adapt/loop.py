@@ -125,7 +125,13 @@ import numpy as np
 from ..estimators.terms import refinement_indicators
 from ..fem.scene import Scene
 from ..kernels import nvb as _kn
-from ..mesh.refine import RefinementRounds, dorfler_mark, refine_marked, refinement_edges
+from ..mesh.refine import (
+    RefinementRounds,
+    dorfler_mark,
+    next_round,
+    refine_marked,
+    refinement_edges,
+)
 from ..solver.levels import keeps_chain, solve_levels
 from ..solver.nested import NESTED_MIN_VERTICES
 
@@ -412,7 +418,7 @@ class _Counter:
         for _ in range(self.bisections - 1):
             cur, one = refine_marked(cur, m, validate=False)
             rounds.append((cur, one))
-            m = m[one.parent_triangle] & (cur.diameters > self.limit)
+            m = next_round(m, cur, one, self.limit)
         self.made = (mask, rounds, m)
         return rounds, m
 

@@ -242,6 +242,18 @@ class RefinementRounds:
         return values
 
 
+def next_round(marked, fine: Mesh, refinement, min_diameter: float = 0.0) -> np.ndarray:
+    """Return the marks of the next round of ``refine_marked(..., bisections=)``.
+
+    The children (on ``fine``, made by ``refinement``) of the triangles ``marked``
+    in the round before, except those of diameter at most ``min_diameter``.
+    """
+    mask = marked[refinement.parent_triangle]
+    if min_diameter > 0.0:
+        mask &= fine.diameters > min_diameter
+    return mask
+
+
 def _as_marked(marked, m: int) -> np.ndarray:
     """Bool mask (M,) from a mask or an index array; refuses anything else."""
     try:
@@ -378,9 +390,7 @@ def refine_marked(
                 mesh, mask, refinement_edge if k == 0 else None, validate=validate
             )
             rounds.append(one)
-            mask = mask[one.parent_triangle]  # the children of the marked triangles
-            if min_diameter > 0.0:
-                mask &= mesh.diameters > min_diameter
+            mask = next_round(mask, mesh, one, min_diameter)
         return mesh, RefinementRounds(rounds)
     ref = refinement_edges(mesh, refinement_edge)
     edges, tri_edges = mesh.edges, mesh.triangle_edges
