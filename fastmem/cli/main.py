@@ -493,7 +493,9 @@ def _scene_and_kernels(args, method: str, adaptive: bool) -> tuple[Scene, float,
     t0 = time.perf_counter()
     try:
         if method == "inexact" or not args.no_estimate:
-            start_compile_helper()  # an empty cache: the flux kernel compiles beside the mesh
+            # an empty cache: the flux kernel (and for a solve to a tolerance the
+            # bisection kernels) compile in a helper process beside the mesh
+            start_compile_helper(("patches", "refinement") if adaptive else ("patches",))
         t_mesh = time.perf_counter()
         with meter.timing():
             scene = _build_mesh(args)

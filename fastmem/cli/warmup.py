@@ -5,7 +5,8 @@ The first run of fastmem after an install compiles its Numba kernels (about
 load them from the on-disk cache (``cache=True``) in a fraction of a second.
 The first use of another feature (a solve to a tolerance, another method, a
 mesh read from a file, callable loads) compiles the kernels only it uses, once
-(about 5 s more for the refinement kernels of a solve to a tolerance).
+(for a solve to a tolerance: the bisection kernels, and the multigrid, threaded
+and large-mesh kernels its growing meshes reach, all before its solve).
 :func:`warm_up` does that work on a tiny problem of the same kind, so that a
 caller (the ``fastmem run`` command, a benchmark) can say what is happening and
 time the solve apart from the compilation; :class:`KernelMeter` counts and
@@ -21,7 +22,9 @@ cache (if it gets there first, both compile them: slower, same result).
 ``fastmem run`` starts the helper before it builds its mesh.  The tiny
 solve waits for the helper only when it reaches the flux reconstruction,
 until the kernel it needs is in the cache (a helper asked for both patch
-kernels goes on with the other), then loads it.  ``FASTMEM_COMPILE_HELPER=0``
+kernels goes on with the other), then loads it.  Before a solve to a
+tolerance the helper then compiles the bisection kernels, and the tiny adaptive
+solve's first refinement waits for it.  ``FASTMEM_COMPILE_HELPER=0``
 turns the helper off; if it fails, the kernel is compiled in the calling
 process as without it.
 """
@@ -53,6 +56,7 @@ from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
 from ..linalg.sparse import ThreadedCSR, masked_gap
+from ..mesh import refine as _refine
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
@@ -201,7 +205,9 @@ def _cpus() -> int:
 #: imports ``fastmem.kernels`` (numpy and numba only) without running
 #: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
 #: the helper does not need; argv: the folders of ``fastmem`` and of its kernels, then
-#: the patch kernels to compile (parts of :func:`fastmem.kernels.flux.precompile`).
+#: the parts to compile: patch kernels (parts of :func:`fastmem.kernels.flux.precompile`)
+#: and, last, ``"refinement"`` (:func:`fastmem.mesh.refine.precompile`, which imports
+#: the mesh layer: scipy too).
 _HELPER_CODE = """
 import importlib.util, sys, types
 package = types.ModuleType("fastmem")
@@ -248,13 +254,19 @@ except Exception:  # another Numba cache layout: compile them here if they are n
     pass
 flux.precompile("coefficients")
 for part in sys.argv[3:]:
-    flux.precompile(part)
+    if part == "refinement":
+        from fastmem.mesh.refine import precompile
+
+        precompile()
+    else:
+        flux.precompile(part)
 import gc
 gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see fastmem.cli.main)
 """
 
 
 _helper = None
+_helper_parts: tuple[str, ...] = ()
 
 
 def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
@@ -265,14 +277,16 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     that has other work to do first (``fastmem run`` builds its mesh) calls it
     earlier so that the helper starts sooner.  ``parts``: the patch kernels, in
     order: ``"patches"`` (constant tensions) and/or ``"weighted"`` (per-triangle
-    tensions).  Returns whether a helper runs.
+    tensions), then optionally ``"refinement"`` (the bisection kernels of an
+    adaptive loop).  Returns whether a helper runs.
     """
-    global _helper
+    global _helper, _helper_parts
     if _helper is not None and _helper.poll() is None:
         return True
     _helper = spawn_compile_helper(*parts)
     if _helper is None:
         return False
+    _helper_parts = tuple(parts)
     # the patch kernel's largest callee, here, while the helper imports
     # fastmem and compiles the coefficient pass: it then loads it from the cache
     flux.precompile("solvers")
@@ -280,18 +294,24 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
 
 
 def _patch_kernel(part: str):
+    """Return the largest kernel of a helper's part (its cache entry tells the part is done)."""
+    if part == "refinement":
+        return topology._refined_new_edges
     if part not in ("patches", "weighted"):
-        raise ValueError(f"part must be 'patches' or 'weighted', got {part!r}")
+        raise ValueError(f"part must be 'patches', 'weighted' or 'refinement', got {part!r}")
     return flux._reconstruct_chunk_weighted if part == "weighted" else flux._reconstruct_chunk
 
 
 def spawn_compile_helper(*parts: str):
     """Compile flux patch kernels (parts of :func:`fastmem.kernels.flux.precompile`) apart.
 
-    Returns the process (wait for it with :func:`join_compile_helper`), or None
-    where a helper would not help: those kernels are cached already, fewer than
-    two CPUs, ``FASTMEM_COMPILE_HELPER=0``, or the process cannot start.
+    And, after them, the bisection kernels (part ``"refinement"``).  Returns the
+    process (wait for it with :func:`join_compile_helper`), or None where a
+    helper would not help: those kernels are cached already, fewer than two
+    CPUs, ``FASTMEM_COMPILE_HELPER=0``, or the process cannot start.
     """
+    if parts and parts[0] == "refinement":
+        raise ValueError("the helper's first part must be a patch kernel ('patches' or 'weighted')")
     kernels_of = [_patch_kernel(part) for part in parts]
     if os.environ.get("FASTMEM_COMPILE_HELPER", "1").strip().lower() in ("0", "no", "false", "off"):
         return None
@@ -389,16 +409,24 @@ def _precompile_masked() -> None:
     ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)
 
 
-def _precompile_topology() -> None:
+def _precompile_topology(edges: bool = True) -> None:
     """Compile the mesh-topology kernels (meshes of 65,536 triangles and more).
 
     Smaller meshes build their topology with NumPy
     (:data:`fastmem.kernels.topology.NUMPY_BELOW`), so the tiny solves never reach
     the kernels: here a tiny mesh takes them, with the types a ``Mesh`` passes.
+    ``edges=False``: the checks, lumped mass and vertex patches of a mesh whose
+    edges come from its parent's (:func:`fastmem.mesh.refine.refine_marked`), not
+    the edge numbering of a mesh built from scratch (an adaptive loop's meshes).
     """
+    base = Mesh.square(4)
     with topology.kernel_paths():
-        mesh = Mesh.square(4)
-        _ = mesh.edges, mesh.lumped_mass, mesh.patch_ptr
+        if edges:
+            mesh = Mesh.square(4)
+            _ = mesh.edges
+        else:  # (Mesh.square would compile the rows kernel of the structured triangles)
+            mesh = Mesh(base.vertices.copy(), base.triangles.copy(), validate=False)
+        _ = mesh.lumped_mass, mesh.patch_ptr, mesh.patch_triangles
 
 
 def _precompile_sums() -> None:
@@ -506,7 +534,11 @@ def warm_up(
     t0 = time.perf_counter()
     uses_flux = method == "inexact" or estimate or adaptive
     part = "weighted" if general else "patches"
-    helper = _take_helper() if uses_flux and start_compile_helper((part,)) else None
+    parts = (part, "refinement") if adaptive else (part,)
+    helper = _take_helper() if uses_flux and start_compile_helper(parts) else None
+    # the bisection kernels in the helper, after the patch kernel (an adaptive
+    # solve's refinement waits for it; a ``fastmem run`` started it with its parts)
+    refinement_apart = helper is not None and "refinement" in _helper_parts
     if helper is not None:
         _kflux.compile_gate = lambda: _wait_for_kernel(helper, part)
         # meanwhile: the flux kernels the helper does not compile and, for a mesh
@@ -516,12 +548,20 @@ def warm_up(
         _precompile_rows()
         if unstructured:
             _precompile_locate()
-    _precompile_cycles(large, general)  # (the tiny solve does not reach them)
-    if large:
+    # an adaptive loop's meshes grow past the sizes of the threaded and nested
+    # kernels: compile them here (while a helper compiles the patch kernel, on a
+    # machine that has one), not inside the solve
+    grows = large or adaptive
+    _precompile_cycles(grows, general)  # (the tiny solve does not reach them)
+    if grows:
         _precompile_masked()
-        _precompile_topology()
-        if uses_flux:
-            _precompile_sums()
+        _precompile_topology(edges=large)
+    if large and uses_flux:
+        _precompile_sums()
+    if adaptive and not refinement_apart:
+        _refine.precompile()
+    if refinement_apart:
+        _refine.compile_gate = lambda: join_compile_helper(helper)
     if uses_flux and large:
         _precompile_classes()  # meshes of 100,000 vertices and more
     if adaptive:
@@ -555,6 +595,7 @@ def warm_up(
         log.setLevel(level)
         if helper is not None:
             _kflux.compile_gate = None
+            _refine.compile_gate = None
             if helper.poll() is None:  # the solve never reached the flux kernel
                 join_compile_helper(helper)
     seconds = time.perf_counter() - t0

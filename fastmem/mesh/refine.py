@@ -77,6 +77,11 @@ __all__ = ["Refinement", "RefinementRounds", "dorfler_mark", "refine_marked", "r
 
 logger = logging.getLogger(__name__)
 
+#: Called, when set, before :func:`refine_marked` first runs its kernels (then
+#: cleared): :func:`fastmem.warm_up` sets it to wait for a helper process that
+#: compiles them into Numba's cache meanwhile (:func:`precompile`).
+compile_gate = None
+
 # Key in Mesh._cache: True when each triangle lists its newest vertex first.
 _NVB_KEY = "nvb_ordered"
 
@@ -392,6 +397,10 @@ def refine_marked(
             rounds.append(one)
             mask = next_round(mask, mesh, one, min_diameter)
         return mesh, RefinementRounds(rounds)
+    global compile_gate
+    if compile_gate is not None:
+        gate, compile_gate = compile_gate, None
+        gate()
     ref = refinement_edges(mesh, refinement_edge)
     edges, tri_edges = mesh.edges, mesh.triangle_edges
     bisected = np.flatnonzero(_kn.closure(tri_edges, mesh.edge_triangles, ref, mask))
@@ -440,6 +449,18 @@ def refine_marked(
         fine.n_triangles,
     )
     return fine, transfer
+
+
+def precompile() -> None:
+    """Compile (or load) the bisection kernels with the types of an adaptive loop.
+
+    Two rounds of marked refinement of a tiny L-shape (longest-edge labels, then
+    the stored ones), without validation as :func:`fastmem.solve` refines.
+    """
+    mesh = Mesh.lshape(2)
+    marked = np.zeros(mesh.n_triangles, dtype=bool)
+    marked[0] = True
+    refine_marked(mesh, marked, validate=False, bisections=2)
 
 
 def _check_theta(theta) -> float:

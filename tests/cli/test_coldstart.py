@@ -23,11 +23,14 @@ import numba
 import numpy as np
 import pytest
 from fastmem.kernels import flux as kf
+from fastmem.kernels import nvb as knvb
 from fastmem.kernels import pool as _par
+from fastmem.kernels import topology as ktopology
 
 import fastmem as fm
 from fastmem.cli import warmup
 from fastmem.estimators import bound, flux
+from fastmem.mesh import refine
 
 
 def test_precompile_compiles_the_pipeline_specialisations():
@@ -100,26 +103,86 @@ def test_cold_run_with_helper_matches_in_process_solve(tmp_path):
     assert _eta(again.stdout) == _eta(res.stdout)
 
 
-def test_failing_helper_falls_back_to_compiling_here(monkeypatch):
-    """A helper that exits with an error: the warm-up still completes, no helper left."""
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_failing_helper_falls_back_to_compiling_here(monkeypatch, adaptive):
+    """A helper that exits with an error: the warm-up still completes, no helper left.
+
+    With ``adaptive`` the helper was also to compile the bisection kernels: the tiny
+    adaptive solve's refinement waits for it, then compiles them here.
+    """
     monkeypatch.setattr(warmup, "_HELPER_CODE", "raise SystemExit(3)")
     monkeypatch.setattr(warmup, "_cached", lambda d: False)
     monkeypatch.setattr(warmup, "_cpus", lambda: 2)
     monkeypatch.setenv("FASTMEM_COMPILE_HELPER", "1")
-    done = warmup.warm_up("inexact")
+    done = warmup.warm_up("inexact", adaptive=adaptive)
     assert done.helper
     assert kf.compile_gate is None
+    assert refine.compile_gate is None
     assert warmup._helper is None
 
 
-@pytest.mark.parametrize(("general", "part"), [(False, "patches"), (True, "weighted")])
-def test_warm_up_asks_the_helper_for_the_patch_kernel_it_needs(monkeypatch, general, part):
-    """Per-triangle tensions (general=True) have their own patch kernel: the helper compiles it."""
+@pytest.mark.parametrize(
+    ("general", "adaptive", "parts"),
+    [
+        (False, False, ("patches",)),
+        (True, False, ("weighted",)),
+        (False, True, ("patches", "refinement")),
+    ],
+)
+def test_warm_up_asks_the_helper_for_the_kernels_it_needs(monkeypatch, general, adaptive, parts):
+    """Per-triangle tensions (general=True) have their own patch kernel: the helper compiles
+    it; a solve to a tolerance also has it compile the bisection kernels."""
     asked = []
     monkeypatch.setattr(warmup, "spawn_compile_helper", lambda *parts: asked.append(parts))
-    done = warmup.warm_up("inexact", general=general)
-    assert asked == [(part,)]
+    done = warmup.warm_up("inexact", general=general, adaptive=adaptive)
+    assert asked == [parts]
     assert not done.helper  # the stand-in started none: compiled (or loaded) here
+    assert refine.compile_gate is None
+
+
+def test_refine_precompile_compiles_the_loop_specialisations():
+    """The helper's ``"refinement"`` part and an adaptive solve share one specialisation
+    of each bisection kernel (otherwise the loop compiles them a second time)."""
+    refine.precompile()
+    scene = fm.Scene(fm.Mesh.lshape(4), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    fm.solve(scene, tol=1e-9, max_levels=3)  # three meshes, two refinements
+    kernels = (
+        knvb._longest_edge_range,
+        knvb.closure,
+        knvb._count_children_range,
+        knvb._children_range,
+        ktopology._refined_new_edges,
+        ktopology._surviving_edges_range,
+    )
+    counts = {d.__name__: len(d.signatures) for d in kernels}
+    assert all(c == 1 for c in counts.values()), counts
+
+
+def test_spawn_compile_helper_wants_a_patch_kernel_first():
+    with pytest.raises(ValueError, match="first part"):
+        warmup.spawn_compile_helper("refinement")
+
+
+def test_adaptive_warm_up_covers_the_loop():
+    """After fm.warm_up(adaptive=True), in a fresh process, a solve to a tolerance whose
+    meshes pass the sizes of the threaded, nested and large-mesh kernels compiles nothing
+    (a first ``fastmem run --tol`` compiled 2.5 s of them inside its solve)."""
+    script = (
+        "import fastmem as fm\n"
+        "from fastmem.cli import warmup\n"
+        "fm.warm_up('inexact', adaptive=True)\n"
+        "ds = warmup._dispatchers()\n"
+        "before = {d: sum(d.stats.cache_misses.values()) for d in ds}\n"
+        "scene = fm.Scene(fm.Mesh.square(128), mu=(1, 1), f=(-1, 1), g=0.1)\n"
+        "r = fm.solve(scene, tol=5e-3)\n"
+        "assert r.mesh.n_triangles > 65536 and r.converged, (r.mesh.n_triangles, r.status)\n"
+        "print([d.__name__ for d in ds if sum(d.stats.cache_misses.values()) != before[d]])\n"
+    )
+    res = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=600, check=False
+    )
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().splitlines()[-1] == "[]"
 
 
 @pytest.mark.parametrize(
