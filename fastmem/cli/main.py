@@ -517,6 +517,7 @@ def _scene_and_kernels(args, method: str, adaptive: bool) -> tuple[Scene, float,
         compiled=meter.compiled,
         loaded=meter.loaded,
         helper=done.helper,
+        helper_kernels=done.helper_kernels,
     )
     if not args.quiet:
         _out(f" {total}")

@@ -81,17 +81,22 @@ class WarmUp:
         Kernel specialisations compiled (not found in Numba's cache).
     loaded : int
         Kernel specialisations loaded from Numba's cache.
+    helper : bool
+        Whether a helper process compiled some of them.
+    helper_kernels : str
+        Which, in words ("the flux kernel", "the bisection kernels", or both).
     """
 
     seconds: float
     compiled: int
     loaded: int
     helper: bool = False
+    helper_kernels: str = "the flux kernel"
 
     def __str__(self) -> str:
         what = f"{self.compiled} compiled"
         if self.helper:
-            what += " here, the flux kernel in a helper process;"
+            what += f" here, {self.helper_kernels} in a helper process;"
         else:
             what += ","
         return f"{self.seconds:.2f} s ({what} {self.loaded} loaded from cache)"
@@ -286,7 +291,7 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     _helper = spawn_compile_helper(*parts)
     if _helper is None:
         return False
-    _helper_parts = tuple(parts)
+    _helper_parts = tuple(_helper.args[5:])  # those not cached (argv: see _HELPER_CODE)
     # the patch kernel's largest callee, here, while the helper imports
     # fastmem and compiles the coefficient pass: it then loads it from the cache
     flux.precompile("solvers")
@@ -316,6 +321,8 @@ def spawn_compile_helper(*parts: str):
     if os.environ.get("FASTMEM_COMPILE_HELPER", "1").strip().lower() in ("0", "no", "false", "off"):
         return None
     try:
+        # (a cached patch kernel and "refinement" to do: a helper for that one alone,
+        # as before the first solve to a tolerance after a first plain run)
         todo = [part for part, k in zip(parts, kernels_of, strict=True) if not _cached(k)]
         if _cpus() < 2 or not todo:
             return None
@@ -538,7 +545,8 @@ def warm_up(
     helper = _take_helper() if uses_flux and start_compile_helper(parts) else None
     # the bisection kernels in the helper, after the patch kernel (an adaptive
     # solve's refinement waits for it; a ``fastmem run`` started it with its parts)
-    refinement_apart = helper is not None and "refinement" in _helper_parts
+    helper_parts = _helper_parts if helper is not None else ()
+    refinement_apart = "refinement" in helper_parts
     if helper is not None:
         _kflux.compile_gate = lambda: _wait_for_kernel(helper, part)
         # meanwhile: the flux kernels the helper does not compile and, for a mesh
@@ -605,4 +613,13 @@ def warm_up(
         compiled=misses1 - misses0,
         loaded=hits1 - hits0,
         helper=helper is not None,
+        helper_kernels=_in_words(helper_parts),
     )
+
+
+def _in_words(parts: tuple[str, ...]) -> str:
+    """What a helper with these parts compiled, for :class:`WarmUp`'s line."""
+    flux_kernel = any(p in ("patches", "weighted") for p in parts)
+    if flux_kernel and "refinement" in parts:
+        return "the flux and bisection kernels"
+    return "the bisection kernels" if "refinement" in parts else "the flux kernel"
