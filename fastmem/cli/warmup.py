@@ -326,7 +326,8 @@ def spawn_compile_helper(*parts: str):
         todo = [part for part, k in zip(parts, kernels_of, strict=True) if not _cached(k)]
         if _cpus() < 2 or not todo:
             return None
-        folders = [os.path.dirname(os.path.abspath(f)) for f in (__file__, kernels.__file__)]
+        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # fastmem/
+        folders = [package, os.path.dirname(os.path.abspath(kernels.__file__))]
         return subprocess.Popen(
             [sys.executable, "-c", _HELPER_CODE, *folders, *todo],
             stdin=subprocess.DEVNULL,

@@ -158,6 +158,27 @@ def test_refine_precompile_compiles_the_loop_specialisations():
     assert all(c == 1 for c in counts.values()), counts
 
 
+def test_helper_gets_the_package_and_kernel_folders(monkeypatch):
+    """The helper imports ``fastmem.mesh`` through the folder it is given: that of the
+    package (an editable install finds it anyway; an installed one only there)."""
+    started = []
+
+    class Popen:
+        def __init__(self, args, **kwargs):
+            started.append(args)
+
+    monkeypatch.setattr(warmup, "_cached", lambda d: False)
+    monkeypatch.setattr(warmup, "_cpus", lambda: 2)
+    monkeypatch.setenv("FASTMEM_COMPILE_HELPER", "1")
+    monkeypatch.setattr(warmup.subprocess, "Popen", Popen)
+    assert warmup.spawn_compile_helper("patches", "refinement") is not None
+    (args,) = started
+    assert args[3] == os.path.dirname(os.path.abspath(fm.__file__))
+    assert args[4] == os.path.dirname(os.path.abspath(kf.__file__))
+    assert os.path.isfile(os.path.join(args[3], "mesh", "refine.py"))
+    assert args[5:] == ["patches", "refinement"]
+
+
 def test_spawn_compile_helper_wants_a_patch_kernel_first():
     with pytest.raises(ValueError, match="first part"):
         warmup.spawn_compile_helper("refinement")
