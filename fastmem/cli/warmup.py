@@ -61,6 +61,7 @@ from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
 from ..problems.obstacles import ball
+from ..solver import nested
 from ..solver.options import METHODS
 
 logger = logging.getLogger(__name__)
@@ -467,12 +468,15 @@ def _precompile_cycles(large: bool, general: bool) -> None:
     them (0.8-1.0 s of its cold start).  The geometric multigrid's only with ``large``:
     ``multigrid="auto"`` takes it on levels of
     :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices and more
-    (1.4 s of a cold first run otherwise spent on kernels a small solve never calls).
+    (1.4 s of a cold first run otherwise spent on kernels a small solve never calls),
+    with the threaded nested interpolation of meshes of
+    :data:`fastmem.solver.nested.KERNELS_FROM` vertices and more.
     """
     if large or general:
         precompile()
     if large:
         gmg.precompile()
+        nested.precompile()  # the nested interpolation of meshes of 65,536 vertices and more
 
 
 def _precompile_locate() -> None:
@@ -619,7 +623,7 @@ def warm_up(
 
 
 def _in_words(parts: tuple[str, ...]) -> str:
-    """What a helper with these parts compiled, for :class:`WarmUp`'s line."""
+    """Say what a helper with these parts compiled, for :class:`WarmUp`'s line."""
     flux_kernel = any(p in ("patches", "weighted") for p in parts)
     if flux_kernel and "refinement" in parts:
         return "the flux and bisection kernels"

@@ -23,7 +23,10 @@ import scipy.sparse as sp
 
 from ..errors import FastmemError, MeshError
 from ..fem.scene import Scene
+from ..kernels import mg as _kmg
+from ..kernels import pool as _par
 from ..mesh.coarsen import coarse_mesh, inside, locate
+from ..mesh.mesh import Mesh
 
 __all__ = ["coarse_scenes", "interpolation_matrix", "prolong_triple", "warm_active_set"]
 
@@ -125,6 +128,12 @@ def _grid_columns(coarse, fine):
     return first, second
 
 
+#: Fine meshes of at least this many vertices get their nested interpolation from the
+#: threaded kernels of :mod:`fastmem.kernels.mg` (the same matrix as the NumPy path of
+#: smaller ones, which a default run's meshes take: it compiles none of them).
+KERNELS_FROM = 65536
+
+
 def _nested_interpolation(coarse, fine) -> sp.csr_matrix | None:
     """Interpolation onto a nested fine mesh from the indices alone, or None.
 
@@ -133,7 +142,10 @@ def _nested_interpolation(coarse, fine) -> sp.csr_matrix | None:
     ``N + e`` on edge ``e``) and two meshes of a structured generator, one with
     twice the cells of the other (:attr:`Mesh._grid`).  Checked against the
     coordinates (None, and point location instead, if any vertex is off).
+    Meshes of :data:`KERNELS_FROM` vertices and more: in the kernel threads.
     """
+    if fine.n_vertices >= KERNELS_FROM:
+        return _nested_interpolation_threaded(coarse, fine)
     if fine.parent is coarse:
         n = coarse.n_vertices
         first = np.concatenate([np.arange(n), coarse.edges[:, 0]])
@@ -157,6 +169,79 @@ def _nested_interpolation(coarse, fine) -> sp.csr_matrix | None:
     return sp.csr_matrix(
         (np.concatenate([w, w[two]]), (rows, cols)), shape=(fine.n_vertices, coarse.n_vertices)
     )
+
+
+def _nested_interpolation_threaded(coarse, fine) -> sp.csr_matrix | None:
+    """:func:`_nested_interpolation` by the kernels of :mod:`fastmem.kernels.mg`.
+
+    The coarse vertices of each fine vertex (a grid table of the coarse vertices and
+    the cells' diagonals first, for two meshes of one grid), then a pass that counts
+    each row's entries and checks the coordinates, a prefix sum and a fill pass: the
+    matrix of the NumPy path, entry for entry (columns ascending, int32 indices).
+    """
+    nf = fine.n_vertices
+    first = np.empty(nf, dtype=np.int64)
+    second = np.empty(nf, dtype=np.int64)
+    fail = np.zeros(1, dtype=np.int8)
+    if fine.parent is coarse:
+        n = coarse.n_vertices
+        if n + coarse.edges.shape[0] != nf:
+            return None
+        _par.parallel_for(_kmg.red_pairs_range, nf, n, coarse.edges, first, second)
+    else:
+        gc, gf = coarse._grid, fine._grid
+        if gc is None or gf is None or gf != (2 * gc[0], 2 * gc[1], *gc[2:]):
+            return None
+        ncx, ncy = int(gc[0]), int(gc[1])
+        box = tuple(float(b) for b in gc[2:])
+        vertex_at = np.full((ncy + 1) * (ncx + 1), -1, dtype=np.int64)
+        cv = coarse.vertices
+        _par.parallel_for(
+            _kmg.grid_vertex_table_range, coarse.n_vertices, cv, ncx, ncy, *box, vertex_at, fail
+        )
+        if fail[0]:
+            return None
+        present = np.zeros(ncx * ncy, dtype=np.bool_)
+        slash = np.zeros(ncx * ncy, dtype=np.bool_)
+        _par.parallel_for(
+            _kmg.grid_cells_range, coarse.n_triangles, cv, coarse.triangles, ncx, ncy, *box,
+            present, slash,
+        )  # fmt: skip
+        _par.parallel_for(
+            _kmg.grid_pairs_range, nf, fine.vertices, 2 * ncx, 2 * ncy, *box, ncx, ncy,
+            vertex_at, present, slash, first, second, fail,
+        )  # fmt: skip
+        if fail[0]:
+            return None
+    counts = np.empty(nf, dtype=np.int32)
+    tol = 1e-9 * coarse.diameters.min()
+    _par.parallel_for(
+        _kmg.pair_counts_range, nf, first, second, coarse.vertices, fine.vertices, tol,
+        counts, fail,
+    )  # fmt: skip
+    if fail[0]:
+        return None
+    indptr = np.zeros(nf + 1, dtype=np.int32)  # nnz <= 2 N < 2**31 (INDEX_LIMIT)
+    np.cumsum(counts, out=indptr[1:])
+    indices = np.empty(int(indptr[-1]), dtype=np.int32)
+    data = np.empty(indices.size)
+    _par.parallel_for(_kmg.pair_fill_range, nf, first, second, indptr, indices, data)
+    mat = sp.csr_matrix((data, indices, indptr), shape=(nf, coarse.n_vertices), copy=False)
+    mat.has_sorted_indices = True
+    return mat
+
+
+def precompile() -> None:
+    """Compile (or load) the threaded nested-interpolation kernels, with a solve's types.
+
+    Meshes of :data:`KERNELS_FROM` vertices and more use them, which the tiny
+    problem of :func:`fastmem.warm_up` is not: here two meshes of one grid and a red
+    refinement take them.
+    """
+    fine = Mesh.square(4)
+    _nested_interpolation_threaded(fine.coarser(), fine)
+    coarse = Mesh.square(2)
+    _nested_interpolation_threaded(coarse, coarse.refine())
 
 
 def _transfer_mu(mu, fine, coarse, cmap):

@@ -115,7 +115,7 @@ def _located_interpolation(coarse, fine):
     return mat
 
 
-@pytest.mark.parametrize(
+NESTED = pytest.mark.parametrize(
     ("make", "dyadic"),
     [
         (lambda: fm.Mesh.square(16), True),
@@ -131,6 +131,95 @@ def _located_interpolation(coarse, fine):
     ],
     ids=["sq16", "sq12", "sq6", "right", "left", "rect", "L16", "L12", "red", "red-rect"],
 )
+
+
+def _both_paths(monkeypatch, coarse, fine):
+    """The nested interpolation by the threaded kernels and by NumPy (None: not nested)."""
+    import fastmem.solver.nested as nested
+
+    monkeypatch.setattr(nested, "KERNELS_FROM", 0)
+    threaded = nested._nested_interpolation(coarse, fine)
+    monkeypatch.setattr(nested, "KERNELS_FROM", 1 << 62)
+    return threaded, nested._nested_interpolation(coarse, fine)
+
+
+@NESTED
+@pytest.mark.parametrize("threads", [1, 2])
+def test_threaded_nested_interpolation_is_the_numpy_matrix(monkeypatch, make, dyadic, threads):
+    """The kernels of large meshes give the NumPy path's matrix entry for entry (index
+    types, sorted columns, weights), for any thread count."""
+    fine = make()
+    coarse = fine.coarser()
+    with _threads(threads):
+        got, want = _both_paths(monkeypatch, coarse, fine)
+    assert want is not None
+    assert got.indptr.dtype == want.indptr.dtype
+    assert got.indices.dtype == want.indices.dtype
+    assert got.has_sorted_indices
+    want.sort_indices()
+    assert np.array_equal(got.indptr, want.indptr)
+    assert np.array_equal(got.indices, want.indices)
+    assert np.array_equal(got.data, want.data)
+
+
+def _threads(k):
+    import contextlib
+
+    import numba
+
+    @contextlib.contextmanager
+    def scope():
+        old = numba.get_num_threads()
+        numba.set_num_threads(k)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(old)
+
+    return scope()
+
+
+@pytest.mark.parametrize("case", ["moved-fine", "moved-coarse", "hole", "not-nested", "red-moved"])
+def test_threaded_nested_interpolation_refuses_what_numpy_refuses(monkeypatch, case):
+    """Both paths return None (point location then) for a vertex off the pattern."""
+    if case == "not-nested":
+        coarse, fine = fm.Mesh.square(4), fm.Mesh.square(16)
+    elif case == "red-moved":
+        coarse = fm.Mesh.square(6)
+        fine = coarse.refine()
+        v = fine.vertices.copy()
+        v[coarse.n_vertices + 3] += 1e-3  # a midpoint off its edge
+        moved = fm.Mesh(v, fine.triangles)
+        moved._parent = coarse
+        fine = moved
+    else:
+        fine = fm.Mesh.square(16)
+        coarse = fine.coarser()
+        if case == "moved-fine":
+            v = fine.vertices.copy()
+            v[40] += (2e-3, -1e-3)  # still on the grid by rounding, off by the check
+            moved = fm.Mesh(v, fine.triangles)
+            moved._grid = fine._grid
+            fine = moved
+        elif case == "moved-coarse":
+            v = coarse.vertices.copy()
+            v[7] += (3e-3, 0.0)
+            moved = fm.Mesh(v, coarse.triangles)
+            moved._grid = coarse._grid
+            coarse = moved
+        else:  # a coarse cell missing: the fine centre vertex there has no diagonal
+            centroids = coarse.vertices[coarse.triangles].mean(axis=1)
+            keep = np.abs(centroids - 0.125).max(axis=1) >= 0.125  # the cell (0, 0.25)^2
+            assert (~keep).sum() == 2
+            holed = fm.Mesh(coarse.vertices, coarse.triangles[keep])
+            holed._grid = coarse._grid
+            coarse = holed
+    got, want = _both_paths(monkeypatch, coarse, fine)
+    assert want is None
+    assert got is None
+
+
+@NESTED
 def test_nested_interpolation_without_point_location(monkeypatch, make, dyadic):
     """Nested meshes: weights from the indices, as point location gives them up to round-off.
 
