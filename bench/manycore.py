@@ -13,7 +13,10 @@ on the structured n x n square, in one process:
    ``fm.solve(scene, method="inexact")`` on a fresh scene (nested iteration,
    the bound included), then ``fm.estimate`` of its triple (the stand-alone
    bound: flux reconstruction and every estimator);
-3. the speed-ups T(1)/T(k) of each column, from the same process.
+3. the speed-ups T(1)/T(k) of each column, from the same process, beside the
+   speed-up of one threaded CSR product with the interior Laplacian (the
+   smoothers' and the CG's kernel; ``product_ms``, ``product_speedup``): the
+   memory bandwidth of the machine bounds what a memory-bound solve gains.
 
 The first solve of the process (the most threads, geometric) is the one a
 user meets after the warm-up; it is recorded as such.  A per-thread count row
@@ -105,6 +108,40 @@ def _profile(mesh, multigrid, which, top=25):
     return text[text.find("ncalls") :]
 
 
+def _product_ceiling(mesh, threads, products=40):
+    """Milliseconds of one threaded CSR product with the interior Laplacian, per thread count.
+
+    The solve's largest kernels stream matrices and vectors through memory, so the
+    speed-up of this product (:class:`fastmem.linalg.sparse.ThreadedCSR`, the one the
+    smoothers and the CG use) is about the most a memory-bound solve can get from more
+    threads on this machine: on the 2-core benchmark VM it was 1.6x for 2 threads while a
+    compute-bound loop scaled 1.9x.  The best of three rounds of ``products`` products.
+    """
+    import numpy as np
+
+    import fastmem as fm
+    from fastmem.fem.assembly import assemble_stiffness
+    from fastmem.linalg.sparse import ThreadedCSR
+
+    ii = mesh.interior_vertices
+    a = assemble_stiffness(mesh)[ii][:, ii].tocsr()
+    a.eliminate_zeros()
+    op = ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape)
+    x = np.random.default_rng(0).random(a.shape[0])
+    out = {}
+    for t in sorted(threads, reverse=True):
+        fm.set_threads(numba=t)
+        op @ x
+        best = float("inf")
+        for _ in range(3):
+            t0 = time.perf_counter()
+            for _ in range(products):
+                op @ x
+            best = min(best, (time.perf_counter() - t0) / products)
+        out[t] = 1e3 * best
+    return out
+
+
 def run(sizes, threads, multigrids, deadline, profile, large, t_start, scenes=("default",)):
     import numba
 
@@ -117,6 +154,11 @@ def run(sizes, threads, multigrids, deadline, profile, large, t_start, scenes=("
         fm.set_threads(numba=max(threads))
         pu = poisson_unit(mesh, repeat=1)
         progress(f"n={n}: {mesh.n_vertices} vertices, Poisson unit {pu['seconds']:.2f} s")
+        product_ms = _product_ceiling(mesh, threads)
+        progress(
+            f"n={n}: threaded CSR product "
+            + ", ".join(f"{t} threads {ms:.2f} ms" for t, ms in sorted(product_ms.items()))
+        )
         first = True
         done = {}  # (threads, multigrid, scene) -> solve + estimate seconds
         for t in sorted(threads, reverse=True):
@@ -134,6 +176,9 @@ def run(sizes, threads, multigrids, deadline, profile, large, t_start, scenes=("
                 row.update(_one(mesh, mg, which))
                 row["first_solve_in_process"] = first
                 row["poisson_s"] = pu["seconds"]
+                row["product_ms"] = product_ms[t]  # the memory-bound ceiling (_product_ceiling)
+                if 1 in product_ms:
+                    row["product_speedup"] = product_ms[1] / product_ms[t]
                 row["solve_pu"] = row["solve_s"] / pu["seconds"]
                 row["peak_rss_mb"] = peak_rss_mb()
                 row["rss_mb"] = current_rss_mb()
