@@ -188,6 +188,27 @@ def test_threads_results_identical(quick):
         assert r["speedup"] > 0
 
 
+def test_manycore_repeats_alternate_and_agree(tmp_path):
+    """--repeat 2: every row has its two solves, medians, the product ceiling, and the
+    same eta in every solve (the bits do not depend on the thread count)."""
+    res = _run(["bench.manycore", "--quick", "--repeat", "2"], tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = json.loads((tmp_path / "manycore_quick.json").read_text())["rows"]
+    solved = [r for r in rows if "solve_s" in r]
+    assert {r["threads"] for r in solved} >= {1}
+    for r in solved:
+        assert len(r["solve_all_s"]) == 2, r
+        assert r["solve_median_s"] > 0
+        assert r["product_ms"] > 0
+        assert "eta_mismatch" not in r, r
+    by_case = {}
+    for r in solved:
+        by_case.setdefault((r["multigrid"], r["scene"]), set()).add(r["eta"])
+    assert all(len(etas) == 1 for etas in by_case.values()), by_case
+    ones = [r for r in solved if r["threads"] == 1]
+    assert all(r["solve_speedup_median"] == 1.0 for r in ones)
+
+
 def test_report_and_figures(quick, results):
     for name in BENCHMARKS:
         quick(name)
