@@ -5,14 +5,15 @@ kernel sums fixed blocks of ``block`` consecutive entries, in order, and
 writes one row of partial sums per block; the caller adds the rows.  The
 blocks do not depend on the thread count, so neither does the result.  The
 same pass checks the maps: an entry that is NaN, infinite or negative is
-counted, and the caller says which map holds it.
+counted, and the caller says which map holds it.  :func:`global_blocks` sums the
+squared norms of the global terms triangle by triangle in the same way.
 """
 
 import math
 
 from ._jit import jit
 
-__all__ = ["BLOCK", "COMBINE_SUMS", "combine_blocks"]
+__all__ = ["BLOCK", "COMBINE_SUMS", "GLOBAL_SUMS", "combine_blocks", "global_blocks"]
 
 #: Entries per block of partial sums.
 BLOCK = 32768
@@ -68,3 +69,72 @@ def combine_blocks(lo, hi, block, osc1, osc2, nc, eta_c, f1, f2, out):
         out[b, 3] = snc
         out[b, 4] = sc
         out[b, 5] = bad
+
+
+#: Columns of the rows :func:`global_blocks` writes.
+GLOBAL_SUMS = ("glob1", "glob2", "rho1", "rho2", "lam_minus", "bad")
+
+
+@jit
+def _finite(x):
+    return abs(x) < math.inf  # False for NaN and +-inf
+
+
+@jit
+def global_blocks(lo, hi, block, triangles, areas, u1, u2, lam, r1, r2, b, boundary, out):
+    """Partial sums of the squared L2 norms of the global terms, over blocks of triangles.
+
+    Row ``t`` of ``out`` for the triangles of blocks ``lo <= t < hi``: the sums of
+    ``v^T M_K v = |K| / 12 (sum_i v_i^2 + (sum_i v_i)^2)`` (the consistent P1 mass
+    matrix of triangle K) for ``v`` = ``rho1 + lam^-``, ``rho2 - lam^-``, ``rho1``,
+    ``rho2``, ``lam^-`` at its three vertices, with ``rho_i = r_i / b`` and
+    ``lam^- = max(lam, 0) - lam`` at interior vertices and 0 on the boundary
+    (:func:`fastmem.estimators.terms.global_terms`); then the number of vertex
+    values of ``u1, u2, lam, r1, r2`` met that are not finite.
+    """
+    m = triangles.shape[0]
+    for t in range(lo, hi):
+        a0 = a1 = a2 = a3 = a4 = 0.0
+        bad = 0
+        for k in range(t * block, min((t + 1) * block, m)):
+            s1 = s2 = sl = 0.0  # sums over the vertices of rho1, rho2, lam^-
+            q0 = q1 = q2 = q3 = q4 = 0.0  # and of the squares of the five fields
+            for c in range(3):
+                v = triangles[k, c]
+                if not (
+                    _finite(u1[v])
+                    and _finite(u2[v])
+                    and _finite(lam[v])
+                    and _finite(r1[v])
+                    and _finite(r2[v])
+                ):
+                    bad += 1
+                if boundary[v]:
+                    continue
+                x1 = r1[v] / b[v]
+                x2 = r2[v] / b[v]
+                lm = max(lam[v], 0.0) - lam[v]
+                s1 += x1
+                s2 += x2
+                sl += lm
+                g1 = x1 + lm
+                g2 = x2 - lm
+                q0 += g1 * g1
+                q1 += g2 * g2
+                q2 += x1 * x1
+                q3 += x2 * x2
+                q4 += lm * lm
+            w = areas[k] / 12.0
+            g1 = s1 + sl
+            g2 = s2 - sl
+            a0 += w * (q0 + g1 * g1)
+            a1 += w * (q1 + g2 * g2)
+            a2 += w * (q2 + s1 * s1)
+            a3 += w * (q3 + s2 * s2)
+            a4 += w * (q4 + sl * sl)
+        out[t, 0] = a0
+        out[t, 1] = a1
+        out[t, 2] = a2
+        out[t, 3] = a3
+        out[t, 4] = a4
+        out[t, 5] = bad

@@ -55,7 +55,7 @@ from ..kernels import assembly, flux, rows, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
-from ..linalg.sparse import ThreadedCSR, masked_gap
+from ..linalg.sparse import ThreadedCSR, masked_gap, read_only
 from ..mesh import refine as _refine
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
@@ -439,9 +439,19 @@ def _precompile_topology(edges: bool = True) -> None:
 
 
 def _precompile_sums() -> None:
-    """Compile the threaded sums of the bound's maps (meshes of 32,768 triangles and more)."""
+    """Compile the threaded sums of the bound (meshes of 131,072 triangles and more).
+
+    The maps of :func:`fastmem.estimators.terms.combine` and the norms of
+    :func:`fastmem.estimators.terms.global_terms`, with the types a solve passes.
+    """
     maps = [np.zeros(1) for _ in range(6)]
     sums.combine_blocks(0, 1, sums.BLOCK, *maps, np.empty((1, len(sums.COMBINE_SUMS))))
+    mesh = Mesh.square(2)
+    vectors = [read_only(np.zeros(mesh.n_vertices)) for _ in range(5)]
+    sums.global_blocks(
+        0, 1, sums.BLOCK, mesh.triangles, mesh.areas, *vectors, mesh.lumped_mass,
+        mesh.boundary_vertex_mask, np.empty((1, len(sums.GLOBAL_SUMS))),
+    )  # fmt: skip
 
 
 def _precompile_classes() -> None:
@@ -569,7 +579,7 @@ def warm_up(
     if grows:
         _precompile_masked()
         _precompile_topology(edges=large)
-    if large and uses_flux:
+    if grows and uses_flux:
         _precompile_sums()
     if adaptive and not refinement_apart:
         _refine.precompile()

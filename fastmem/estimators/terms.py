@@ -75,7 +75,7 @@ from ..fem.loaddata import integrals
 from ..kernels import cut as _cut
 from ..kernels import pool as _par
 from ..kernels import sums as _sums
-from ..linalg.sparse import threaded
+from ..linalg.sparse import read_only, threaded
 
 __all__ = [
     "combine",
@@ -313,6 +313,22 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     these terms are unchanged too.
     """
     mesh = scene.mesh
+    c_f = friedrichs_constant(mesh)
+    mu1 = float(np.min(scene.mu1))
+    mu2 = float(np.min(scene.mu2))
+    squares = _global_blocks(mesh, u1, u2, lam, r1, r2)
+    if squares is not None:  # a large mesh: one pass of the kernel threads
+        glob1, glob2, rho1, rho2, lam_minus = (math.sqrt(max(x, 0.0)) for x in squares)
+        return {
+            "eta_glob1": c_f / math.sqrt(mu1) * glob1,
+            "eta_glob2": c_f / math.sqrt(mu2) * glob2,
+            "rho_norm1": rho1,
+            "rho_norm2": rho2,
+            "lam_minus_norm": lam_minus,
+            "C_F": c_f,
+            "mu1": mu1,
+            "mu2": mu2,
+        }
     _nodal(mesh, u1, "u1")
     _nodal(mesh, u2, "u2")
     lam = _nodal(mesh, lam, "lam")
@@ -332,9 +348,6 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     def norm(x, mx):
         return math.sqrt(max(float(x @ mx), 0.0))
 
-    c_f = friedrichs_constant(mesh)
-    mu1 = float(np.min(scene.mu1))
-    mu2 = float(np.min(scene.mu2))
     return {
         "eta_glob1": c_f / math.sqrt(mu1) * norm(rho1 + lam_minus, m_rho1 + m_lam),
         "eta_glob2": c_f / math.sqrt(mu2) * norm(rho2 - lam_minus, m_rho2 - m_lam),
@@ -345,6 +358,39 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
         "mu1": mu1,
         "mu2": mu2,
     }
+
+
+def _global_blocks(mesh, u1, u2, lam, r1, r2):
+    """Return the five squared norms of :func:`global_terms` from one pass of the threads.
+
+    ``(|rho1 + lam^-|^2, |rho2 - lam^-|^2, |rho1|^2, |rho2|^2, |lam^-|^2)`` summed
+    triangle by triangle with the element mass matrices
+    (:func:`fastmem.kernels.sums.global_blocks`: fixed blocks, so the same for
+    every thread count; equal to the mass-matrix products of the NumPy path up to
+    round-off), or None on meshes below :data:`BLOCK_SUM_TRIANGLES` triangles, for
+    vectors that are not contiguous float64 of one value per vertex, and when a
+    value is not finite (the NumPy path then names it).
+    """
+    m, n = mesh.n_triangles, mesh.n_vertices
+    vectors = (u1, u2, lam, r1, r2)
+    if m < BLOCK_SUM_TRIANGLES or not all(
+        isinstance(x, np.ndarray)
+        and x.dtype == np.float64
+        and x.shape == (n,)
+        and x.flags.c_contiguous
+        for x in vectors
+    ):
+        return None
+    blocks = -(-m // _sums.BLOCK)
+    out = np.empty((blocks, len(_sums.GLOBAL_SUMS)))
+    _par.parallel_for(
+        _sums.global_blocks, blocks, _sums.BLOCK, mesh.triangles, mesh.areas,
+        *(read_only(x) for x in vectors), mesh.lumped_mass, mesh.boundary_vertex_mask, out,
+        grain=1,
+    )  # fmt: skip
+    if out[:, 5].any():
+        return None
+    return tuple(float(t) for t in out[:, :5].sum(axis=0))
 
 
 _LOCAL_KEYS = ("eta_osc1", "eta_osc2", "eta_nc", "eta_C")

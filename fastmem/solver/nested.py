@@ -9,7 +9,9 @@ four children.  Triples are transferred by P1 interpolation at the fine
 vertices.  Between two meshes of the structured generators (the coarse grid has
 half the cells of the fine one) and from a parent to its red refinement, every
 fine vertex is a coarse vertex or the midpoint of a coarse edge, so the weights
-are known from the indices alone (NumPy, O(N)); other pairs locate the fine
+are known from the indices alone (O(N): NumPy, and from
+:data:`KERNELS_FROM` fine vertices on the kernel threads, the same matrix); other
+pairs locate the fine
 vertices in the coarse mesh with a bucket grid (Numba, O(N)), whose kernels a
 structured run thus never compiles.
 """

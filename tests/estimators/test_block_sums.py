@@ -70,3 +70,68 @@ def test_bad_entry_is_named(bad, where):
     message = "finite and non-negative"
     with pytest.raises(DataError, match=f"{where} must be {message}"):
         terms.combine(f1, f2, local, GLOB)
+
+
+def _global_case(rng, mesh):
+    n = mesh.n_vertices
+    u1, u2 = rng.standard_normal(n), rng.standard_normal(n)
+    lam = rng.standard_normal(n)  # both signs: lam^- is not zero everywhere
+    r1, r2 = 1e-3 * rng.standard_normal(n), 1e-3 * rng.standard_normal(n)
+    return u1, u2, lam, r1, r2
+
+
+def _global_both(monkeypatch, scene, args, block):
+    """global_terms by the triangle-block kernel (blocks of ``block`` triangles) and by
+    the NumPy path (the mass-matrix products)."""
+    monkeypatch.setattr(terms, "BLOCK_SUM_TRIANGLES", 0)
+    monkeypatch.setattr(terms._sums, "BLOCK", block)
+    assert terms._global_blocks(scene.mesh, *args) is not None  # the kernel path is taken
+    got = terms.global_terms(scene, *args)
+    monkeypatch.setattr(terms, "BLOCK_SUM_TRIANGLES", 1 << 62)
+    return got, terms.global_terms(scene, *args)
+
+
+@pytest.mark.parametrize("block", [32768, 7])
+@pytest.mark.parametrize("mesh", ["square", "lshape-refined"])
+def test_global_terms_by_triangle_blocks_match_the_mass_matrix(monkeypatch, block, mesh):
+    """x^T M x summed triangle by triangle (element mass matrices) is the NumPy path's
+    x . (M x), up to round-off, for the five norms; per-triangle tensions take their
+    minimum in both."""
+    m = fm.Mesh.square(12) if mesh == "square" else fm.Mesh.lshape(6).refine()
+    mu1 = np.linspace(1.0, 3.0, m.n_triangles)
+    scene = fm.Scene(m, mu=(mu1, 2.0), f=(-1.0, 1.0), g=0.1)
+    got, want = _global_both(monkeypatch, scene, _global_case(np.random.default_rng(2), m), block)
+    assert got.keys() == want.keys()
+    for key in want:
+        assert got[key] == pytest.approx(want[key], rel=1e-12, abs=0.0), key
+    assert want["lam_minus_norm"] > 0.1  # the case tests something
+
+
+def test_global_terms_by_triangle_blocks_do_not_depend_on_threads(monkeypatch):
+    m = fm.Mesh.square(16)
+    scene = fm.Scene(m, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    args = _global_case(np.random.default_rng(3), m)
+    monkeypatch.setattr(terms, "BLOCK_SUM_TRIANGLES", 0)
+    monkeypatch.setattr(terms._sums, "BLOCK", 5)
+    threads = fm.get_threads()["numba"]
+    try:
+        fm.set_threads(numba=1)
+        one = terms.global_terms(scene, *args)
+        fm.set_threads(numba=2)
+        two = terms.global_terms(scene, *args)
+    finally:
+        fm.set_threads(numba=threads)
+    assert one == two
+
+
+@pytest.mark.parametrize("name", ["u1", "u2", "lam", "r1", "r2"])
+def test_global_terms_kernel_path_still_names_a_bad_value(monkeypatch, name):
+    m = fm.Mesh.square(8)
+    scene = fm.Scene(m, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    names = ("u1", "u2", "lam", "r1", "r2")
+    args = dict(zip(names, _global_case(np.random.default_rng(4), m), strict=True))
+    args[name][m.boundary_vertices[0]] = np.nan  # also a boundary value must be finite
+    monkeypatch.setattr(terms, "BLOCK_SUM_TRIANGLES", 0)
+    assert terms._global_blocks(m, *args.values()) is None
+    with pytest.raises(DataError, match=name):
+        terms.global_terms(scene, *args.values())
