@@ -360,6 +360,17 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     }
 
 
+def _plain(arrays, length) -> bool:
+    """Tell whether every array is a contiguous float64 ndarray of shape ``(length,)``."""
+    return all(
+        isinstance(x, np.ndarray)
+        and x.dtype == np.float64
+        and x.shape == (length,)
+        and x.flags.c_contiguous
+        for x in arrays
+    )
+
+
 def _global_blocks(mesh, u1, u2, lam, r1, r2):
     """Return the five squared norms of :func:`global_terms` from one pass of the threads.
 
@@ -371,15 +382,9 @@ def _global_blocks(mesh, u1, u2, lam, r1, r2):
     vectors that are not contiguous float64 of one value per vertex, and when a
     value is not finite (the NumPy path then names it).
     """
-    m, n = mesh.n_triangles, mesh.n_vertices
+    m = mesh.n_triangles
     vectors = (u1, u2, lam, r1, r2)
-    if m < BLOCK_SUM_TRIANGLES or not all(
-        isinstance(x, np.ndarray)
-        and x.dtype == np.float64
-        and x.shape == (n,)
-        and x.flags.c_contiguous
-        for x in vectors
-    ):
+    if m < BLOCK_SUM_TRIANGLES or not _plain(vectors, mesh.n_vertices):
         return None
     blocks = -(-m // _sums.BLOCK)
     out = np.empty((blocks, len(_sums.GLOBAL_SUMS)))
@@ -430,13 +435,7 @@ def _block_sums(eta_F1, eta_F2, local):
         eta_F2,
     ]
     m = getattr(arrays[0], "shape", (0,))[0] if getattr(arrays[0], "ndim", 0) == 1 else 0
-    if m < BLOCK_SUM_TRIANGLES or not all(
-        isinstance(x, np.ndarray)
-        and x.dtype == np.float64
-        and x.shape == (m,)
-        and x.flags.c_contiguous
-        for x in arrays
-    ):
+    if m < BLOCK_SUM_TRIANGLES or not _plain(arrays, m):
         return None
     blocks = -(-m // _sums.BLOCK)
     out = np.empty((blocks, len(_sums.COMBINE_SUMS)))
