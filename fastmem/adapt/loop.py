@@ -125,6 +125,7 @@ import numpy as np
 from ..estimators.terms import refinement_indicators
 from ..fem.scene import Scene
 from ..kernels import nvb as _kn
+from ..linalg.sparse import submatrix
 from ..mesh.refine import (
     RefinementRounds,
     dorfler_mark,
@@ -738,7 +739,7 @@ def extend_chain(chain, old, new, refinement) -> None:
     :data:`CHAIN_MIN_UNKNOWNS` interior vertices.
     """
     p = refinement.prolongation_matrix()
-    chain.insert(0, p[new.interior_vertices][:, old.interior_vertices].tocsr())
+    chain.insert(0, submatrix(p, new.interior_vertices, old.interior_vertices))
     while len(chain) > 1 and chain[-1].shape[0] < CHAIN_MIN_UNKNOWNS:
         chain.pop()
 

@@ -55,7 +55,7 @@ from ..kernels import assembly, flux, rows, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
-from ..linalg.sparse import ThreadedCSR, masked_gap, read_only
+from ..linalg.sparse import ThreadedCSR, masked_gap, read_only, threaded_submatrix
 from ..mesh import refine as _refine
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
@@ -411,8 +411,11 @@ def _precompile_masked() -> None:
     The solvers use them from :data:`~fastmem.linalg.sparse.THREADED_ROWS` rows on
     (measured: 0.5 s of compilation inside the first solve of a ball at n = 256).
     """
-    a = assemble_stiffness(Mesh.square(4))
+    mesh = Mesh.square(4)
+    a = assemble_stiffness(mesh)
     masked_gap(a, np.zeros(a.shape[0], dtype=bool))
+    # and the interior blocks and interpolations of fastmem.linalg.sparse.submatrix
+    threaded_submatrix(a, mesh.interior_vertices, mesh.interior_vertices)
     # and the scale of the CG's attainable residual (fastmem.linalg.amg.PCG.attainable)
     x = np.zeros(a.shape[0])
     ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)

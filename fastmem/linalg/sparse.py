@@ -6,10 +6,15 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..kernels import pool as _par
-from ..kernels.masked import gap_counts_range, gap_fill_range
+from ..kernels.masked import (
+    gap_counts_range,
+    gap_fill_range,
+    submatrix_counts_range,
+    submatrix_fill_range,
+)
 from ..kernels.smooth import csr_abs_matvec_range, csr_matvec_range
 
-__all__ = ["THREADED_ROWS", "ThreadedCSR", "masked_gap", "read_only", "threaded"]
+__all__ = ["THREADED_ROWS", "ThreadedCSR", "masked_gap", "read_only", "submatrix", "threaded"]
 
 
 def _unsigned(index: np.ndarray) -> np.ndarray:
@@ -122,6 +127,48 @@ def threaded(a):
     out = ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape, copy=False)
     out.has_sorted_indices = a.has_sorted_indices
     return out
+
+
+def submatrix(a, rows: np.ndarray, cols: np.ndarray) -> sp.csr_matrix:
+    """Return ``a[rows][:, cols]`` as a CSR matrix, in the kernel threads when ``a`` is large.
+
+    ``rows``, ``cols``: increasing index arrays (the interior vertices of a mesh, say).
+    The matrix scipy's fancy indexing gives, entry for entry: the kept entries of each
+    row in their stored order, stored zeros included, the index dtype of ``a``.
+    From :data:`THREADED_ROWS` selected rows on, two passes over row chunks
+    (:mod:`fastmem.kernels.masked`): count, prefix sum, copy; smaller matrices, and
+    arrays the kernels do not take, go to scipy.
+    """
+    rows = np.asarray(rows)
+    cols = np.asarray(cols)
+    if (
+        rows.size < THREADED_ROWS
+        or not isinstance(a, sp.csr_matrix)
+        or a.dtype != np.float64
+        or not _kernel_arrays(a)
+    ):
+        return a[rows][:, cols].tocsr()
+    return threaded_submatrix(a, rows, cols)
+
+
+def threaded_submatrix(a, rows, cols):
+    """:func:`submatrix`'s kernel path, for any size (:func:`fastmem.warm_up` compiles it)."""
+    col_map = np.full(a.shape[1], -1, dtype=np.int64)
+    col_map[cols] = np.arange(cols.size)
+    rows = read_only(np.ascontiguousarray(rows, dtype=np.int64))
+    col_map = read_only(col_map)
+    indptr, indices = _unsigned(a.indptr), _unsigned(a.indices)
+    counts = np.empty(rows.size, dtype=indptr.dtype)
+    _par.parallel_for(submatrix_counts_range, rows.size, indptr, indices, rows, col_map, counts)
+    new_ptr = np.zeros(rows.size + 1, dtype=a.indptr.dtype)
+    np.cumsum(counts, out=new_ptr[1:], dtype=new_ptr.dtype)
+    out_indices = np.empty(int(new_ptr[-1]), dtype=a.indices.dtype)
+    out_data = np.empty(out_indices.size, dtype=np.float64)
+    _par.parallel_for(
+        submatrix_fill_range, rows.size, indptr, indices, a.data, rows, col_map,
+        _unsigned(new_ptr), out_indices, out_data,
+    )  # fmt: skip
+    return sp.csr_matrix((out_data, out_indices, new_ptr), shape=(rows.size, cols.size), copy=False)
 
 
 def masked_gap(a, active: np.ndarray):

@@ -24,7 +24,7 @@ from ..estimators.bound import evaluate
 from ..fem.loaddata import expect_estimates
 from ..io.result import Result
 from ..linalg.gmg import NestedChain
-from ..linalg.sparse import THREADED_ROWS
+from ..linalg.sparse import THREADED_ROWS, submatrix
 from .history import history_arrays, new_history
 from .nested import coarse_scenes, interpolation_matrix, prolong_triple
 from .newton import newton_min
@@ -170,7 +170,7 @@ def solve_levels(
             triple = prolong_triple(sc, coarse, triple, mat)
             if _two_grid(options, sc) or _general_cg(options, sc):
                 ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
-                link = mat[ii][:, ic].tocsr()
+                link = submatrix(mat, ii, ic)
                 if keeps_chain(options, sc):
                     # this level's interpolation joins those of the coarser levels
                     transfers.insert(0, link)

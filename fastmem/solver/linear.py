@@ -39,6 +39,7 @@ import scipy.sparse as sp
 
 from ..errors import ParameterError
 from ..linalg.direct import factorize
+from ..linalg.sparse import submatrix
 
 __all__ = ["DecoupledStep", "GeneralStep", "make_step"]
 
@@ -95,7 +96,7 @@ class GeneralStep(_Base):
         super().__init__(scene)
         ii = self.interior
         a1 = scene.weighted_stiffness(1)
-        self.a1_ii = a1[ii][:, ii].tocsr()
+        self.a1_ii = submatrix(a1, ii, ii)
         f1, f2 = scene.loads
         lift = a1 @ self.g_full  # u1 = g on the boundary, u2 = 0
         self.rhs1 = f1[ii] - lift[ii]
@@ -111,7 +112,7 @@ class GeneralStep(_Base):
         a flux reconstruction that ran without it.
         """
         ii = self.interior
-        a2_ii = self.scene.weighted_stiffness(2)[ii][:, ii].tocsr()
+        a2_ii = submatrix(self.scene.weighted_stiffness(2), ii, ii)
         return sp.block_diag([self.a1_ii, a2_ii], format="csr")
 
     def prolongation(self, active):
@@ -157,7 +158,7 @@ class DecoupledStep(_Base):
 
     def __init__(self, scene):
         if not scene.constant_mu:
-                    raise ParameterError(
+            raise ParameterError(
                 "path='decoupled' needs constant mu1 and mu2; this scene has per-triangle "
                 "values (use path='general' or 'auto')"
             )
@@ -184,7 +185,7 @@ class DecoupledStep(_Base):
         a flux reconstruction that ran without it.
         """
         ii = self.interior
-        return self.scene.stiffness[ii][:, ii].tocsr()
+        return submatrix(self.scene.stiffness, ii, ii)
 
     @property
     def s_boundary(self):

@@ -48,7 +48,7 @@ import scipy.sparse as sp
 
 from ..linalg.amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner
 from ..linalg.gmg import NestedChain, NestedMG
-from ..linalg.sparse import THREADED_ROWS, masked_gap, threaded
+from ..linalg.sparse import THREADED_ROWS, masked_gap, submatrix, threaded
 from .linear import DecoupledStep
 
 __all__ = [
@@ -170,7 +170,7 @@ class GeneralCG:
         if st.k_ii is not None:
             return
         ii = st.interior
-        st.a1_ii = st.scene.weighted_stiffness(1)[ii][:, ii].tocsr()  # as GeneralStep makes it
+        st.a1_ii = submatrix(st.scene.weighted_stiffness(1), ii, ii)  # as GeneralStep makes it
         st.k_ii = st.reduced_stiffness()
         if self.active is not None:
             p = self.p = st.prolongation(self.active)

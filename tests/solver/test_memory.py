@@ -153,6 +153,56 @@ def test_gap_matrix_is_scipys_expression_bit_for_bit(n, frac, path):
     assert got.has_sorted_indices == ref.has_sorted_indices
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize(
+    "case", ["interior-block", "refined-interpolation", "unsorted-pattern", "int64", "small"]
+)
+def test_submatrix_is_scipys_fancy_indexing(monkeypatch, case, threads):
+    """The threaded submatrix gives a[rows][:, cols] entry for entry: each row's kept
+    entries in stored order (stored zeros included), the index dtypes of ``a``."""
+    import numba
+    import scipy.sparse as sp
+
+    from fastmem.linalg import sparse
+    from fastmem.solver.nested import interpolation_matrix
+
+    mesh = fm.Mesh.square(12)
+    ii = mesh.interior_vertices
+    rows = cols = ii
+    a = fm.Scene(mesh, mu=(1.0, 1.0)).stiffness.copy()
+    if case == "refined-interpolation":  # rows of the fine mesh, columns of the coarse one
+        fine = mesh.refine()
+        a = interpolation_matrix(mesh, fine)
+        rows = fine.interior_vertices
+    elif case == "unsorted-pattern":  # reversed entries within each row
+        a = a.copy()
+        for i in range(a.shape[0]):
+            lo, hi = a.indptr[i], a.indptr[i + 1]
+            a.indices[lo:hi] = a.indices[lo:hi][::-1].copy()
+            a.data[lo:hi] = a.data[lo:hi][::-1].copy()
+        a.has_sorted_indices = False
+    elif case == "int64":
+        a = sp.csr_matrix(
+            (a.data, a.indices.astype(np.int64), a.indptr.astype(np.int64)), shape=a.shape
+        )
+    if case != "small":
+        monkeypatch.setattr(sparse, "THREADED_ROWS", 1)
+    assert (a.data == 0).any() or case == "refined-interpolation"  # stored zeros are kept
+    ref = a[rows][:, cols].tocsr()
+    old = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        got = sparse.submatrix(a, rows, cols)
+    finally:
+        numba.set_num_threads(old)
+    assert got.shape == ref.shape
+    for name in ("indices", "indptr"):
+        x, y = getattr(ref, name), getattr(got, name)
+        assert x.dtype == y.dtype, name
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(ref.data.view(np.uint64), got.data.view(np.uint64))
+
+
 def test_lazy_hierarchy_and_released_state():
     """The Laplacian's hierarchy of the decoupled path is built only when applied."""
     from fastmem.linalg.amg import PCG, LazyAMG
