@@ -50,6 +50,7 @@ from .. import kernels
 from ..errors import ParameterError, checked_keywords
 from ..estimators.flux import find_patch_classes, reconstruct
 from ..fem.assembly import assemble_stiffness
+from ..fem.residual import fused_residuals
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, sums, topology
 from ..kernels import flux as _kflux
@@ -416,6 +417,13 @@ def _precompile_masked() -> None:
     masked_gap(a, np.zeros(a.shape[0], dtype=bool))
     # and the interior blocks and interpolations of fastmem.linalg.sparse.submatrix
     threaded_submatrix(a, mesh.interior_vertices, mesh.interior_vertices)
+    # and the residuals of a triple in one pass (fastmem.fem.residual.residuals)
+    scene = Scene(mesh, mu=(1.0, 2.0), f=(-1.0, 1.0), g=0.1)
+    z = np.zeros(mesh.n_vertices)
+    fused_residuals(
+        scene.weighted_stiffness(1), scene.weighted_stiffness(2), z, z, z, *scene.loads,
+        mesh.lumped_mass, mesh.boundary_vertex_mask,
+    )  # fmt: skip
     # and the scale of the CG's attainable residual (fastmem.linalg.amg.PCG.attainable)
     x = np.zeros(a.shape[0])
     ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)

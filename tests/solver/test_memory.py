@@ -346,3 +346,50 @@ def test_fast_dedup_setup_builds_the_same_hierarchy(monkeypatch):
                 np.testing.assert_array_equal(x.indptr, y.indptr)
                 np.testing.assert_array_equal(x.indices, y.indices)
                 np.testing.assert_array_equal(x.data.view(np.uint64), y.data.view(np.uint64))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("mu", [(1.0, 1.0), (1.0, 2.5), (3.0, 0.5), "per-triangle"])
+def test_fused_residuals_are_the_numpy_expressions_bit_for_bit(monkeypatch, mu, threads):
+    """One pass over the shared pattern gives F1 - A1 u1 + B lam and F2 - A2 u2 - B lam
+    with NumPy's bits, zero on the boundary (per-triangle tensions share the mesh's
+    pattern too)."""
+    import numba
+
+    from fastmem.fem import residual
+
+    mesh = fm.Mesh.square(20)
+    if mu == "per-triangle":
+        mu = (np.linspace(1.0, 2.0, mesh.n_triangles), 1.5)
+    scene = fm.Scene(mesh, mu=mu, f=(-1.0, 1.0), g=0.1)
+    rng = np.random.default_rng(5)
+    n = scene.mesh.n_vertices
+    u1, u2, lam = rng.standard_normal(n), rng.standard_normal(n), rng.standard_normal(n)
+    want = residual.residuals(scene, u1, u2, lam)  # below THREADED_ROWS: the NumPy path
+    monkeypatch.setattr(residual, "THREADED_ROWS", 1)
+    args = (
+        scene.weighted_stiffness(1), scene.weighted_stiffness(2), u1, u2, lam, *scene.loads,
+        scene.mesh.lumped_mass, scene.mesh.boundary_vertex_mask,
+    )  # fmt: skip
+    assert residual._fused(*args) is not None  # the fused path is taken
+    old = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        got = residual.residuals(scene, u1, u2, lam)
+    finally:
+        numba.set_num_threads(old)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g.view(np.uint64), w.view(np.uint64))
+    assert not got[0][scene.mesh.boundary_vertices].any()
+
+
+def test_residuals_of_two_patterns_keep_two_products(monkeypatch):
+    """Matrices whose patterns are separate arrays: no fused pass, the products as before."""
+    from fastmem.fem import residual
+
+    mesh = fm.Mesh.square(8)
+    scene = fm.Scene(mesh, mu=(np.linspace(1.0, 2.0, mesh.n_triangles), 1.0), f=(-1.0, 1.0))
+    monkeypatch.setattr(residual, "THREADED_ROWS", 1)
+    z = np.zeros(mesh.n_vertices)
+    a1, a2 = scene.weighted_stiffness(1), scene.weighted_stiffness(2).copy()
+    assert residual._fused(a1, a2, z, z, z, *scene.loads, mesh.lumped_mass, z > 0) is None
