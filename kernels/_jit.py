@@ -4,7 +4,7 @@ import functools
 
 import numba
 
-__all__ = ["FASTMATH", "jit", "pjit"]
+__all__ = ["FASTMATH", "jit", "jit_divide", "pjit"]
 
 # No "nnan"/"ninf": max(0, .) and active-set comparisons need IEEE semantics.
 # No "contract"/"reassoc": with them the flux estimators differed in the last bits
@@ -17,6 +17,12 @@ __all__ = ["FASTMATH", "jit", "pjit"]
 FASTMATH = frozenset({"nsz", "arcp", "afn"})
 
 jit = functools.partial(numba.njit, cache=True, fastmath=set(FASTMATH), nogil=True)
+#: The flags without "arcp", for kernels that must divide as NumPy does: with it LLVM
+#: turns a division by a loop invariant into a product with its reciprocal (the
+#: decoupled triple's ``/ (mu1 + mu2)`` differed from NumPy's in the last bit).
+jit_divide = functools.partial(
+    numba.njit, cache=True, fastmath=set(FASTMATH - {"arcp"}), nogil=True
+)
 #: Numba's parallel compiler: no kernel of this version uses it (kernels.pool says
 #: why); the baseline kernels that benchmarks load from the project's history do
 #: (bench/estimate.py ``base_reconstruct``).

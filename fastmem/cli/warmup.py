@@ -63,6 +63,7 @@ from ..mesh.mesh import Mesh
 from ..pipeline import solve
 from ..problems.obstacles import ball
 from ..solver import nested
+from ..solver.linear import DecoupledStep, threaded_triple
 from ..solver.options import METHODS
 
 logger = logging.getLogger(__name__)
@@ -424,6 +425,9 @@ def _precompile_masked() -> None:
         scene.weighted_stiffness(1), scene.weighted_stiffness(2), z, z, z, *scene.loads,
         mesh.lumped_mass, mesh.boundary_vertex_mask,
     )  # fmt: skip
+    # and the decoupled step's triple in one pass (fastmem.solver.linear.DecoupledStep.triple)
+    step = DecoupledStep(scene)
+    threaded_triple(step, np.zeros(step.interior.size, dtype=bool), z, z[step.interior])
     # and the scale of the CG's attainable residual (fastmem.linalg.amg.PCG.attainable)
     x = np.zeros(a.shape[0])
     ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..kernels import pool as _par
 from ..kernels.smooth import residual_pair_range
-from ..linalg.sparse import THREADED_ROWS, _unsigned, read_only, threaded
+from ..linalg.sparse import THREADED_ROWS, as_unsigned, read_only, threaded
 
 __all__ = ["residuals"]
 
@@ -68,7 +68,7 @@ def fused_residuals(a1, a2, u1, u2, lam, f1, f2, b, bnd):
     r1 = np.empty(n)
     r2 = np.empty(n)
     _par.parallel_for(
-        residual_pair_range, n, _unsigned(a1.indptr), _unsigned(a1.indices), a1.data, a2.data,
+        residual_pair_range, n, as_unsigned(a1.indptr), as_unsigned(a1.indices), a1.data, a2.data,
         u1, u2, lam, f1, f2, b, bnd, r1, r2,
     )  # fmt: skip
     return r1, r2

@@ -27,7 +27,7 @@ except ImportError:  # pragma: no cover - another scipy layout: keep its own met
     _bsr_base = None
 from ..kernels import pool as _par
 from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
-from .sparse import ThreadedCSR, _kernel_arrays, _unsigned, threaded
+from .sparse import ThreadedCSR, _kernel_arrays, as_unsigned, threaded
 
 __all__ = [
     "AMG_DEFAULTS",
@@ -300,7 +300,7 @@ class HybridGaussSeidel:
         n = a.shape[0]
         nb = self.n_blocks
         edges = [n * k // nb for k in range(nb + 1)]
-        indptr, indices, data = _unsigned(a.indptr), _unsigned(a.indices), a.data
+        indptr, indices, data = as_unsigned(a.indptr), as_unsigned(a.indices), a.data
         own = self._busy.acquire(blocking=False)
         try:
             if not own:  # the buffer is in use by a cycle in another thread
@@ -346,7 +346,10 @@ def precompile() -> None:
     the tiny problem of :func:`fastmem.warm_up` is below the sizes that use them.
     """
     a = sp.csr_matrix(np.array([[2.0, -1.0], [-1.0, 2.0]]))
-    indptr, indices = _unsigned(a.indptr.astype(np.int32)), _unsigned(a.indices.astype(np.int32))
+    indptr, indices = (
+        as_unsigned(a.indptr.astype(np.int32)),
+        as_unsigned(a.indices.astype(np.int32)),
+    )
     x, b, old = np.zeros(2), np.ones(2), np.zeros(2)
     gs_hybrid_range(0, 2, True, indptr, indices, a.data, x, old, b)
     cross_block_dominant(indptr, indices, a.data, 2)
@@ -406,7 +409,9 @@ def _hybrid_converges(a, n_blocks: int) -> bool:
     exceeds its entries coupling other blocks (a few rows per block boundary;
     true for every M-matrix).  Otherwise the level keeps pyamg's sweep.
     """
-    return bool(cross_block_dominant(_unsigned(a.indptr), _unsigned(a.indices), a.data, n_blocks))
+    return bool(
+        cross_block_dominant(as_unsigned(a.indptr), as_unsigned(a.indices), a.data, n_blocks)
+    )
 
 
 class AMGPreconditioner:

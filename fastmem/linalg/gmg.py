@@ -41,7 +41,7 @@ from ..kernels import pool as _par
 from ..kernels.mg import MAX_ROW, galerkin_rows, galerkin_values, prolong_add_range, residual_range
 from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
 from .amg import amg_preconditioner, hybrid_blocks
-from .sparse import _unsigned, read_only, threaded
+from .sparse import as_unsigned, read_only, threaded
 
 __all__ = ["COARSE_DENSE", "NestedChain", "NestedMG", "galerkin", "precompile"]
 
@@ -86,7 +86,7 @@ def galerkin(a, p, r=None, keep=None, drop=True) -> sp.csr_matrix:
     keep_arr = np.ones(n, dtype=np.bool_) if keep is None else np.ascontiguousarray(keep, np.bool_)
     arrays = []
     for mat in (r, a, p):
-        arrays += [_unsigned(mat.indptr), _unsigned(mat.indices), mat.data]
+        arrays += [as_unsigned(mat.indptr), as_unsigned(mat.indices), mat.data]
     counts = np.empty(m, dtype=np.int64)
     dummy_i = np.empty(0, dtype=np.int64)
     dummy_d = np.empty(0, dtype=np.float64)
@@ -131,7 +131,7 @@ def galerkin_into(c, a, p, r, keep, rows=None) -> None:
     rows = np.arange(m, dtype=np.int64) if rows is None else np.asarray(rows, dtype=np.int64)
     arrays = []
     for mat in (r, a, p):
-        arrays += [_unsigned(mat.indptr), _unsigned(mat.indices), mat.data]
+        arrays += [as_unsigned(mat.indptr), as_unsigned(mat.indices), mat.data]
     keep_arr = np.ascontiguousarray(keep, np.bool_)
     _par.parallel_for(
         galerkin_values,
@@ -139,8 +139,8 @@ def galerkin_into(c, a, p, r, keep, rows=None) -> None:
         rows,
         *arrays,
         keep_arr,
-        _unsigned(c.indptr),
-        _unsigned(c.indices),
+        as_unsigned(c.indptr),
+        as_unsigned(c.indices),
         c.data,
     )
 
@@ -222,7 +222,7 @@ class _Level:
     def __init__(self, a):
         self.a = a
         self.n = a.shape[0]
-        self.arrays = (_unsigned(a.indptr), _unsigned(a.indices), a.data)
+        self.arrays = (as_unsigned(a.indptr), as_unsigned(a.indices), a.data)
         nb = hybrid_blocks(self.n)
         if nb and not cross_block_dominant(*self.arrays, nb):
             nb = 0  # the hybrid sweep may not converge on this operator: plain Gauss-Seidel
@@ -330,11 +330,11 @@ class NestedMG:
         self.levels = [_Level(a) for a in ops[:-1]]
         self._transfer = [
             (
-                _unsigned(chain.p[k].indptr),
-                _unsigned(chain.p[k].indices),
+                as_unsigned(chain.p[k].indptr),
+                as_unsigned(chain.p[k].indices),
                 chain.p[k].data,
-                _unsigned(chain.r(k).indptr),
-                _unsigned(chain.r(k).indices),
+                as_unsigned(chain.r(k).indptr),
+                as_unsigned(chain.r(k).indices),
                 chain.r(k).data,
             )
             for k in range(len(chain))

@@ -17,7 +17,7 @@ from ..kernels.smooth import csr_abs_matvec_range, csr_matvec_range
 __all__ = ["THREADED_ROWS", "ThreadedCSR", "masked_gap", "read_only", "submatrix", "threaded"]
 
 
-def _unsigned(index: np.ndarray) -> np.ndarray:
+def as_unsigned(index: np.ndarray) -> np.ndarray:
     """Return the same (non-negative) indices as unsigned integers, a view.
 
     Numba indexes with a signed integer only after a test for negative values
@@ -86,7 +86,11 @@ class ThreadedCSR(sp.csr_matrix):
 
         x = read_only(np.ascontiguousarray(other))
         y = np.empty(self.shape[0])
-        indptr, indices, data = _unsigned(self.indptr), _unsigned(self.indices), self.data
+        indptr, indices, data = (
+            as_unsigned(self.indptr),
+            as_unsigned(self.indices),
+            self.data,
+        )
         _par.parallel_for(csr_matvec_range, self.shape[0], indptr, indices, data, x, y)
         return y
 
@@ -109,7 +113,7 @@ class ThreadedCSR(sp.csr_matrix):
         x = read_only(np.ascontiguousarray(x))
         b = read_only(np.ascontiguousarray(b))
         y = np.empty(self.shape[0])
-        indptr, indices = _unsigned(self.indptr), _unsigned(self.indices)
+        indptr, indices = as_unsigned(self.indptr), as_unsigned(self.indices)
         _par.parallel_for(csr_abs_matvec_range, self.shape[0], indptr, indices, self.data, x, b, y)
         return y
 
@@ -157,7 +161,7 @@ def threaded_submatrix(a, rows, cols):
     col_map[cols] = np.arange(cols.size)
     rows = read_only(np.ascontiguousarray(rows, dtype=np.int64))
     col_map = read_only(col_map)
-    indptr, indices = _unsigned(a.indptr), _unsigned(a.indices)
+    indptr, indices = as_unsigned(a.indptr), as_unsigned(a.indices)
     counts = np.empty(rows.size, dtype=indptr.dtype)
     _par.parallel_for(submatrix_counts_range, rows.size, indptr, indices, rows, col_map, counts)
     new_ptr = np.zeros(rows.size + 1, dtype=a.indptr.dtype)
@@ -166,7 +170,7 @@ def threaded_submatrix(a, rows, cols):
     out_data = np.empty(out_indices.size, dtype=np.float64)
     _par.parallel_for(
         submatrix_fill_range, rows.size, indptr, indices, a.data, rows, col_map,
-        _unsigned(new_ptr), out_indices, out_data,
+        as_unsigned(new_ptr), out_indices, out_data,
     )  # fmt: skip
     return sp.csr_matrix((out_data, out_indices, new_ptr), shape=(rows.size, cols.size), copy=False)
 
@@ -184,7 +188,7 @@ def masked_gap(a, active: np.ndarray):
     if not _kernel_arrays(a) or a.dtype != np.float64:
         return None
     n = a.shape[0]
-    indptr, indices = _unsigned(a.indptr), _unsigned(a.indices)
+    indptr, indices = as_unsigned(a.indptr), as_unsigned(a.indices)
     data = a.data
     mask = np.ascontiguousarray(active, dtype=np.bool_)
     counts = np.empty(n, dtype=indptr.dtype)
@@ -195,7 +199,15 @@ def masked_gap(a, active: np.ndarray):
     out_indices = np.empty(nnz, dtype=indices.dtype)
     out_data = np.empty(nnz, dtype=np.float64)
     _par.parallel_for(
-        gap_fill_range, n, indptr, indices, data, mask, _unsigned(new_ptr), out_indices, out_data
+        gap_fill_range,
+        n,
+        indptr,
+        indices,
+        data,
+        mask,
+        as_unsigned(new_ptr),
+        out_indices,
+        out_data,
     )
     out = sp.csr_matrix(
         (out_data, out_indices.view(a.indices.dtype), new_ptr), shape=a.shape, copy=False

@@ -38,8 +38,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ParameterError
+from ..kernels import pool as _par
+from ..kernels import rows as _rows
 from ..linalg.direct import factorize
-from ..linalg.sparse import submatrix
+from ..linalg.sparse import THREADED_ROWS, as_unsigned, read_only, submatrix
 
 __all__ = ["DecoupledStep", "GeneralStep", "make_step"]
 
@@ -221,7 +223,18 @@ class DecoupledStep(_Base):
         return self.triple(active, self.s, w_i)
 
     def triple(self, active, s, w_i):
-        """Full triple from the sum ``s`` (all vertices) and the interior gap ``w_i``."""
+        """Full triple from the sum ``s`` and the interior gap ``w_i``.
+
+        ``s`` holds all vertices or the interior ones (its boundary values do not
+        enter).  From :data:`~fastmem.linalg.sparse.THREADED_ROWS` interior vertices
+        on, one pass of the kernel threads (:mod:`fastmem.kernels.rows`) with the
+        same operations, so the same bits.
+        """
+        fused = self._triple_threaded(active, s, w_i)
+        if fused is not None:
+            return fused
+        if s.shape[0] != self.n:
+            s = self._full(s, self.s_boundary)
         lam_i = np.zeros_like(w_i)
         lam_i[active] = ((self.a_ii @ w_i)[active] - self.rhs_w[active]) / (
             self.kappa * self.b_int[active]
@@ -233,6 +246,46 @@ class DecoupledStep(_Base):
         u1[self.boundary] = self.g_full[self.boundary]
         u2[self.boundary] = 0.0
         return u1, u2, self._full(lam_i)
+
+    def _triple_threaded(self, active, s, w_i):
+        """:meth:`triple` in the kernel threads, or None (small, or arrays it does not take)."""
+        ni, a = self.interior.size, self.a_ii
+        if (
+            ni < THREADED_ROWS
+            or not _plain_vector(w_i, ni)
+            or not (_plain_vector(s, self.n) or _plain_vector(s, ni))
+            or not isinstance(a, sp.csr_matrix)
+            or a.indices.dtype not in (np.int32, np.int64)
+            or a.indptr.dtype != a.indices.dtype
+        ):
+            return None
+        return threaded_triple(self, active, s, w_i)
+
+
+def threaded_triple(step, active, s, w_i):
+    """:meth:`DecoupledStep.triple` by the kernels of :mod:`fastmem.kernels.rows`, any size.
+
+    (:func:`fastmem.warm_up` compiles them on a tiny mesh.)
+    """
+    ni, a = step.interior.size, step.a_ii
+    active = read_only(np.ascontiguousarray(active, dtype=np.bool_))
+    s, w_i = read_only(np.ascontiguousarray(s)), read_only(np.ascontiguousarray(w_i))
+    u1, u2, lam = np.empty(step.n), np.empty(step.n), np.empty(step.n)
+    _par.parallel_for(
+        _rows.decoupled_triple_range, ni, step.interior, active, s, s.shape[0] == step.n,
+        w_i, as_unsigned(a.indptr), as_unsigned(a.indices), np.ascontiguousarray(a.data),
+        read_only(step.rhs_w), float(step.kappa), read_only(step.b_int), float(step.mu1),
+        float(step.mu2), u1, u2, lam,
+    )  # fmt: skip
+    _par.parallel_for(
+        _rows.boundary_triple_range, step.boundary.size, step.boundary,
+        read_only(step.g_full), u1, u2, lam,
+    )  # fmt: skip
+    return u1, u2, lam
+
+
+def _plain_vector(x, n) -> bool:
+    return isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == (n,)
 
 
 def make_step(scene, path: str = "auto"):

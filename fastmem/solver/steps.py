@@ -526,7 +526,7 @@ class DecoupledCG:
     def triple(self):
         """Full triple of the current CG iterate."""
         st = self.system
-        return st.triple(self.active, st._full(self.cg_s.x, st.s_boundary), self.cg_w.x)
+        return st.triple(self.active, self.cg_s.x, self.cg_w.x)  # s: interior values
 
     def s_share(self, mass, c_f):
         """Return the part of eta_alg due to the residual of s: C_F ||R_s/B|| / sqrt(mu1 + mu2)."""

@@ -393,3 +393,34 @@ def test_residuals_of_two_patterns_keep_two_products(monkeypatch):
     z = np.zeros(mesh.n_vertices)
     a1, a2 = scene.weighted_stiffness(1), scene.weighted_stiffness(2).copy()
     assert residual._fused(a1, a2, z, z, z, *scene.loads, mesh.lumped_mass, z > 0) is None
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("s_kind", ["all-vertices", "interior"])
+@pytest.mark.parametrize("mu", [(1.0, 1.0), (2.0, 0.5)])
+def test_threaded_decoupled_triple_is_numpys_bit_for_bit(monkeypatch, s_kind, mu, threads):
+    """The decoupled step's triple from one pass of the kernel threads: the NumPy path's
+    arrays bit for bit (an s of all vertices or of the interior ones)."""
+    import numba
+
+    from fastmem.solver import linear
+
+    scene = fm.Scene(fm.Mesh.square(20), mu=mu, f=(-1.0, 1.0), g=0.1)
+    step = linear.DecoupledStep(scene)
+    rng = np.random.default_rng(6)
+    ni = step.interior.size
+    active = rng.random(ni) < 0.4
+    s = rng.standard_normal(step.n if s_kind == "all-vertices" else ni)
+    w_i = rng.standard_normal(ni)
+    want = step.triple(active, s, w_i)  # below THREADED_ROWS: NumPy
+    monkeypatch.setattr(linear, "THREADED_ROWS", 1)
+    assert step._triple_threaded(active, s, w_i) is not None
+    old = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        got = step.triple(active, s, w_i)
+    finally:
+        numba.set_num_threads(old)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g.view(np.uint64), w.view(np.uint64))
+    assert (got[2][step.interior][active] != 0).all()  # the active rows were computed
