@@ -160,7 +160,6 @@ def test_gap_matrix_is_scipys_expression_bit_for_bit(n, frac, path):
 def test_submatrix_is_scipys_fancy_indexing(monkeypatch, case, threads):
     """The threaded submatrix gives a[rows][:, cols] entry for entry: each row's kept
     entries in stored order (stored zeros included), the index dtypes of ``a``."""
-    import numba
     import scipy.sparse as sp
 
     from fastmem.linalg import sparse
@@ -189,12 +188,7 @@ def test_submatrix_is_scipys_fancy_indexing(monkeypatch, case, threads):
         monkeypatch.setattr(sparse, "THREADED_ROWS", 1)
     assert (a.data == 0).any() or case == "refined-interpolation"  # stored zeros are kept
     ref = a[rows][:, cols].tocsr()
-    old = numba.get_num_threads()
-    numba.set_num_threads(threads)
-    try:
-        got = sparse.submatrix(a, rows, cols)
-    finally:
-        numba.set_num_threads(old)
+    got = _with_threads(threads, lambda: sparse.submatrix(a, rows, cols))
     assert got.shape == ref.shape
     for name in ("indices", "indptr"):
         x, y = getattr(ref, name), getattr(got, name)
@@ -354,7 +348,6 @@ def test_fused_residuals_are_the_numpy_expressions_bit_for_bit(monkeypatch, mu, 
     """One pass over the shared pattern gives F1 - A1 u1 + B lam and F2 - A2 u2 - B lam
     with NumPy's bits, zero on the boundary (per-triangle tensions share the mesh's
     pattern too)."""
-    import numba
 
     from fastmem.fem import residual
 
@@ -372,12 +365,7 @@ def test_fused_residuals_are_the_numpy_expressions_bit_for_bit(monkeypatch, mu, 
         scene.mesh.lumped_mass, scene.mesh.boundary_vertex_mask,
     )  # fmt: skip
     assert residual._fused(*args) is not None  # the fused path is taken
-    old = numba.get_num_threads()
-    numba.set_num_threads(threads)
-    try:
-        got = residual.residuals(scene, u1, u2, lam)
-    finally:
-        numba.set_num_threads(old)
+    got = _with_threads(threads, lambda: residual.residuals(scene, u1, u2, lam))
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g.view(np.uint64), w.view(np.uint64))
     assert not got[0][scene.mesh.boundary_vertices].any()
@@ -401,7 +389,6 @@ def test_residuals_of_two_patterns_keep_two_products(monkeypatch):
 def test_threaded_decoupled_triple_is_numpys_bit_for_bit(monkeypatch, s_kind, mu, threads):
     """The decoupled step's triple from one pass of the kernel threads: the NumPy path's
     arrays bit for bit (an s of all vertices or of the interior ones)."""
-    import numba
 
     from fastmem.solver import linear
 
@@ -415,12 +402,19 @@ def test_threaded_decoupled_triple_is_numpys_bit_for_bit(monkeypatch, s_kind, mu
     want = step.triple(active, s, w_i)  # below THREADED_ROWS: NumPy
     monkeypatch.setattr(linear, "THREADED_ROWS", 1)
     assert step._triple_threaded(active, s, w_i) is not None
-    old = numba.get_num_threads()
-    numba.set_num_threads(threads)
-    try:
-        got = step.triple(active, s, w_i)
-    finally:
-        numba.set_num_threads(old)
+    got = _with_threads(threads, lambda: step.triple(active, s, w_i))
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g.view(np.uint64), w.view(np.uint64))
     assert (got[2][step.interior][active] != 0).all()  # the active rows were computed
+
+
+def _with_threads(threads, fn):
+    """Call ``fn()`` with ``threads`` Numba threads (the count restored after)."""
+    import numba
+
+    old = numba.get_num_threads()
+    numba.set_num_threads(threads)
+    try:
+        return fn()
+    finally:
+        numba.set_num_threads(old)
