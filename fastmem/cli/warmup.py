@@ -50,20 +50,18 @@ from .. import kernels
 from ..errors import ParameterError, checked_keywords
 from ..estimators.flux import find_patch_classes, reconstruct
 from ..fem.assembly import assemble_stiffness
-from ..fem.residual import fused_residuals
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
-from ..linalg.sparse import ThreadedCSR, masked_gap, read_only, threaded_submatrix
+from ..linalg.sparse import ThreadedCSR, masked_gap, read_only
 from ..mesh import refine as _refine
 from ..mesh.coarsen import locate
 from ..mesh.mesh import Mesh
 from ..pipeline import solve
 from ..problems.obstacles import ball
-from ..solver import nested
-from ..solver.linear import DecoupledStep, threaded_triple
+from ..solver import linear, nested
 from ..solver.options import METHODS
 
 logger = logging.getLogger(__name__)
@@ -214,8 +212,9 @@ def _cpus() -> int:
 #: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
 #: the helper does not need; argv: the folders of ``fastmem`` and of its kernels, then
 #: the parts to compile: patch kernels (parts of :func:`fastmem.kernels.flux.precompile`)
-#: and, last, ``"refinement"`` (:func:`fastmem.mesh.refine.precompile`, which imports
-#: the mesh layer: scipy too).
+#: and, last, ``"refinement"`` (:func:`fastmem.mesh.refine.precompile` and
+#: :func:`fastmem.solver.linear.precompile`, which import the mesh and solver layers:
+#: scipy too).
 _HELPER_CODE = """
 import importlib.util, sys, types
 package = types.ModuleType("fastmem")
@@ -264,8 +263,10 @@ flux.precompile("coefficients")
 for part in sys.argv[3:]:
     if part == "refinement":
         from fastmem.mesh.refine import precompile
+        from fastmem.solver.linear import precompile as precompile_steps
 
         precompile()
+        precompile_steps()
     else:
         flux.precompile(part)
 import gc
@@ -303,8 +304,8 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
 
 def _patch_kernel(part: str):
     """Return the largest kernel of a helper's part (its cache entry tells the part is done)."""
-    if part == "refinement":
-        return topology._refined_new_edges
+    if part == "refinement":  # (its last kernel: fastmem.solver.linear.precompile's)
+        return rows.decoupled_triple_range
     if part not in ("patches", "weighted"):
         raise ValueError(f"part must be 'patches', 'weighted' or 'refinement', got {part!r}")
     return flux._reconstruct_chunk_weighted if part == "weighted" else flux._reconstruct_chunk
@@ -416,18 +417,6 @@ def _precompile_masked() -> None:
     mesh = Mesh.square(4)
     a = assemble_stiffness(mesh)
     masked_gap(a, np.zeros(a.shape[0], dtype=bool))
-    # and the interior blocks and interpolations of fastmem.linalg.sparse.submatrix
-    threaded_submatrix(a, mesh.interior_vertices, mesh.interior_vertices)
-    # and the residuals of a triple in one pass (fastmem.fem.residual.residuals)
-    scene = Scene(mesh, mu=(1.0, 2.0), f=(-1.0, 1.0), g=0.1)
-    z = np.zeros(mesh.n_vertices)
-    fused_residuals(
-        scene.weighted_stiffness(1), scene.weighted_stiffness(2), z, z, z, *scene.loads,
-        mesh.lumped_mass, mesh.boundary_vertex_mask,
-    )  # fmt: skip
-    # and the decoupled step's triple in one pass (fastmem.solver.linear.DecoupledStep.triple)
-    step = DecoupledStep(scene)
-    threaded_triple(step, np.zeros(step.interior.size, dtype=bool), z, z[step.interior])
     # and the scale of the CG's attainable residual (fastmem.linalg.amg.PCG.attainable)
     x = np.zeros(a.shape[0])
     ThreadedCSR((a.data, a.indices, a.indptr), shape=a.shape).abs_product_plus(x, x)
@@ -483,24 +472,25 @@ def _precompile_classes() -> None:
     reconstruct(Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), zero, zero, zero)
 
 
-def _precompile_cycles(large: bool, general: bool) -> None:
+def _precompile_cycles(large: bool, general: bool, adaptive: bool = False) -> None:
     """Compile the multigrid cycles' kernels (hybrid sweep, threaded products; nested MG).
 
     The hybrid sweep and the threaded products serve matrices of
     :data:`~fastmem.linalg.sparse.THREADED_ROWS` rows and more: those of a ``large``
     mesh, and the general path's reduced systems (up to two unknowns per vertex) from
     half that many vertices on; a default ``fastmem run`` (16,641 vertices) never calls
-    them (0.8-1.0 s of its cold start).  The geometric multigrid's only with ``large``:
-    ``multigrid="auto"`` takes it on levels of
-    :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices and more
-    (1.4 s of a cold first run otherwise spent on kernels a small solve never calls),
-    with the threaded nested interpolation of meshes of
-    :data:`fastmem.solver.nested.KERNELS_FROM` vertices and more.
+    them (0.8-1.0 s of its cold start); an ``adaptive`` loop's meshes grow to them.
+    The geometric multigrid's only with ``large`` or ``adaptive``: ``multigrid="auto"``
+    takes it on levels of :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS`
+    interior vertices and more (1.4 s of a cold first run otherwise spent on kernels
+    a small solve never calls); the threaded nested interpolation of meshes of
+    :data:`fastmem.solver.nested.KERNELS_FROM` vertices and more only with ``large``.
     """
-    if large or general:
+    if large or general or adaptive:
         precompile()
-    if large:
+    if large or adaptive:
         gmg.precompile()
+    if large:  # (an adaptive loop's meshes are not nested by red refinement)
         nested.precompile()  # the nested interpolation of meshes of 65,536 vertices and more
 
 
@@ -590,12 +580,14 @@ def warm_up(
     # kernels: compile them here (while a helper compiles the patch kernel, on a
     # machine that has one), not inside the solve
     grows = large or adaptive
-    _precompile_cycles(grows, general)  # (the tiny solve does not reach them)
+    _precompile_cycles(large, general, adaptive)  # (the tiny solve does not reach them)
     if grows:
         _precompile_masked()
         _precompile_topology(edges=large)
-    if grows and uses_flux:
+    if large and uses_flux:  # (meshes of 131,072 triangles and more)
         _precompile_sums()
+    if large or (adaptive and not refinement_apart):
+        linear.precompile()  # the linear steps' threaded passes
     if adaptive and not refinement_apart:
         _refine.precompile()
     if refinement_apart:

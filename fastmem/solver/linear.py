@@ -38,10 +38,19 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ParameterError
+from ..fem.residual import fused_residuals
+from ..fem.scene import Scene
 from ..kernels import pool as _par
 from ..kernels import rows as _rows
 from ..linalg.direct import factorize
-from ..linalg.sparse import THREADED_ROWS, as_unsigned, read_only, submatrix
+from ..linalg.sparse import (
+    THREADED_ROWS,
+    as_unsigned,
+    read_only,
+    submatrix,
+    threaded_submatrix,
+)
+from ..mesh.mesh import Mesh
 
 __all__ = ["DecoupledStep", "GeneralStep", "make_step"]
 
@@ -282,6 +291,29 @@ def threaded_triple(step, active, s, w_i):
         read_only(step.g_full), u1, u2, lam,
     )  # fmt: skip
     return u1, u2, lam
+
+
+def precompile() -> None:
+    """Compile (or load) the linear steps' threaded passes, with the types of a solve.
+
+    The interior block (:func:`fastmem.linalg.sparse.submatrix`), the residuals of a
+    triple (:func:`fastmem.fem.residual.residuals`) and the decoupled step's triple,
+    which run in the kernel threads from
+    :data:`~fastmem.linalg.sparse.THREADED_ROWS` vertices on: here on a tiny mesh.
+    :func:`fastmem.warm_up` calls it for large meshes and solves to a tolerance (in
+    its helper process, with the bisection kernels, where it has one).
+    """
+    mesh = Mesh.square(4)
+    scene = Scene(mesh, mu=(1.0, 2.0), f=(-1.0, 1.0), g=0.1)
+    ii = mesh.interior_vertices
+    threaded_submatrix(scene.stiffness, ii, ii)
+    z = np.zeros(mesh.n_vertices)
+    fused_residuals(
+        scene.weighted_stiffness(1), scene.weighted_stiffness(2), z, z, z, *scene.loads,
+        mesh.lumped_mass, mesh.boundary_vertex_mask,
+    )  # fmt: skip
+    step = DecoupledStep(scene)
+    threaded_triple(step, np.zeros(ii.size, dtype=bool), z, z[ii])
 
 
 def _plain_vector(x, n) -> bool:
