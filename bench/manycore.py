@@ -199,7 +199,9 @@ def run(
     for n in sizes:
         mesh = fm.Mesh.square(n)
         fm.set_threads(numba=max(threads))
-        pu = poisson_unit(mesh, repeat=1)
+        # with --repeat, the unit is the median of three (it varied by 10 % between
+        # processes on the 2-core VM; one timed run would carry that into every PU)
+        pu = poisson_unit(mesh, repeat=3 if repeat > 1 else 1)
         progress(f"n={n}: {mesh.n_vertices} vertices, Poisson unit {pu['seconds']:.2f} s")
         product_ms = _product_ceiling(mesh, threads)
         progress(
@@ -223,6 +225,7 @@ def run(
                 row.update(_one(mesh, mg, which))
                 row["first_solve_in_process"] = first
                 row["poisson_s"] = pu["seconds"]
+                row["poisson_all_s"] = list(pu["total_s"]["all"])
                 row["product_ms"] = product_ms[t]  # the memory-bound ceiling (_product_ceiling)
                 if 1 in product_ms:
                     row["product_speedup"] = product_ms[1] / product_ms[t]
