@@ -23,8 +23,8 @@ cache (if it gets there first, both compile them: slower, same result).
 solve waits for the helper only when it reaches the flux reconstruction,
 until the kernel it needs is in the cache (a helper asked for both patch
 kernels goes on with the other), then loads it.  Before a solve to a
-tolerance the helper then compiles the bisection kernels, and the tiny adaptive
-solve's first refinement waits for it.  ``FASTMEM_COMPILE_HELPER=0``
+tolerance the helper then compiles the bisection kernels and the linear steps'
+threaded passes, and the tiny adaptive solve's first refinement waits for it.  ``FASTMEM_COMPILE_HELPER=0``
 turns the helper off; if it fails, the kernel is compiled in the calling
 process as without it.
 """
@@ -286,8 +286,9 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     that has other work to do first (``fastmem run`` builds its mesh) calls it
     earlier so that the helper starts sooner.  ``parts``: the patch kernels, in
     order: ``"patches"`` (constant tensions) and/or ``"weighted"`` (per-triangle
-    tensions), then optionally ``"refinement"`` (the bisection kernels of an
-    adaptive loop).  Returns whether a helper runs.
+    tensions), then optionally ``"refinement"`` (what an adaptive loop adds: the
+    bisection kernels and the linear steps' threaded passes).  Returns whether a
+    helper runs.
     """
     global _helper, _helper_parts
     if _helper is not None and _helper.poll() is None:
@@ -314,7 +315,8 @@ def _patch_kernel(part: str):
 def spawn_compile_helper(*parts: str):
     """Compile flux patch kernels (parts of :func:`fastmem.kernels.flux.precompile`) apart.
 
-    And, after them, the bisection kernels (part ``"refinement"``).  Returns the
+    And, after them, the bisection kernels and the linear steps' threaded passes
+    (part ``"refinement"``).  Returns the
     process (wait for it with :func:`join_compile_helper`), or None where a
     helper would not help: those kernels are cached already, fewer than two
     CPUs, ``FASTMEM_COMPILE_HELPER=0``, or the process cannot start.
