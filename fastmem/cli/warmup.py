@@ -24,9 +24,9 @@ solve waits for the helper only when it reaches the flux reconstruction,
 until the kernel it needs is in the cache (a helper asked for both patch
 kernels goes on with the other), then loads it.  Before a solve to a
 tolerance the helper then compiles the bisection kernels and the linear steps'
-threaded passes, and the tiny adaptive solve's first refinement waits for it.  ``FASTMEM_COMPILE_HELPER=0``
-turns the helper off; if it fails, the kernel is compiled in the calling
-process as without it.
+threaded passes, and the tiny adaptive solve's first refinement waits for it.
+``FASTMEM_COMPILE_HELPER=0`` turns the helper off; if it fails, the kernel is
+compiled in the calling process as without it.
 """
 
 from __future__ import annotations
