@@ -271,8 +271,11 @@ def run(
         del mesh
     if large:
         fm.set_threads(numba=max(threads))
-        left = (deadline or 1e9) - (time.perf_counter() - t_start)
-        progress(f"n={large}: {left:.0f} s left")
+        if deadline:
+            left = deadline - (time.perf_counter() - t_start)
+            progress(f"n={large}: {left:.0f} s left before the deadline")
+        else:
+            progress(f"n={large}: one solve at {max(threads)} threads")
         t0 = time.perf_counter()
         mesh = fm.Mesh.square(large)
         mesh_s = time.perf_counter() - t0
