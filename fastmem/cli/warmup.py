@@ -382,6 +382,16 @@ def _take_helper():
 HELPER_TIMEOUT = 300.0
 
 
+def _after_the_helper(proc) -> None:
+    """Wait for a helper that compiles the ``"refinement"`` part.
+
+    If it failed, compile the linear steps' threaded passes here (the bisection
+    kernels then compile as the refinement calls them).
+    """
+    if not join_compile_helper(proc):
+        linear.precompile()
+
+
 def join_compile_helper(proc) -> bool:
     """Wait for the helper; True when it finished cleanly (its kernel is in the cache)."""
     try:
@@ -593,7 +603,7 @@ def warm_up(
     if adaptive and not refinement_apart:
         _refine.precompile()
     if refinement_apart:
-        _refine.compile_gate = lambda: join_compile_helper(helper)
+        _refine.compile_gate = lambda: _after_the_helper(helper)
     if uses_flux and large:
         _precompile_classes()  # meshes of 100,000 vertices and more
     if adaptive:

@@ -114,11 +114,15 @@ def test_failing_helper_falls_back_to_compiling_here(monkeypatch, adaptive):
     monkeypatch.setattr(warmup, "_cached", lambda d: False)
     monkeypatch.setattr(warmup, "_cpus", lambda: 2)
     monkeypatch.setenv("FASTMEM_COMPILE_HELPER", "1")
+    compiled_here = []
+    monkeypatch.setattr(warmup.linear, "precompile", lambda: compiled_here.append(1))
     done = warmup.warm_up("inexact", adaptive=adaptive)
     assert done.helper
     assert kf.compile_gate is None
     assert refine.compile_gate is None
     assert warmup._helper is None
+    # the linear steps' passes the helper was to compile: here, once
+    assert compiled_here == ([1] if adaptive else [])
 
 
 @pytest.mark.parametrize(
