@@ -29,6 +29,17 @@ def _bad(x):
 
 
 @jit
+def _store(out, row, s0, s1, s2, s3, s4, bad):
+    """Write one block's five sums and its count of bad entries to row ``row``."""
+    out[row, 0] = s0
+    out[row, 1] = s1
+    out[row, 2] = s2
+    out[row, 3] = s3
+    out[row, 4] = s4
+    out[row, 5] = bad
+
+
+@jit
 def combine_blocks(lo, hi, block, osc1, osc2, nc, eta_c, f1, f2, out):
     """Partial sums of blocks ``lo <= b < hi`` of the six maps of the bound.
 
@@ -63,12 +74,7 @@ def combine_blocks(lo, hi, block, osc1, osc2, nc, eta_c, f1, f2, out):
             s2nc += e * e
             snc += n * n
             sc += c
-        out[b, 0] = s1
-        out[b, 1] = s2
-        out[b, 2] = s2nc
-        out[b, 3] = snc
-        out[b, 4] = sc
-        out[b, 5] = bad
+        _store(out, b, s1, s2, s2nc, snc, sc, bad)
 
 
 #: Columns of the rows :func:`global_blocks` writes.
@@ -132,9 +138,4 @@ def global_blocks(lo, hi, block, triangles, areas, u1, u2, lam, r1, r2, b, bound
             a2 += w * (q2 + s1 * s1)
             a3 += w * (q3 + s2 * s2)
             a4 += w * (q4 + sl * sl)
-        out[t, 0] = a0
-        out[t, 1] = a1
-        out[t, 2] = a2
-        out[t, 3] = a3
-        out[t, 4] = a4
-        out[t, 5] = bad
+        _store(out, t, a0, a1, a2, a3, a4, bad)

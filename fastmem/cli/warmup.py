@@ -275,7 +275,6 @@ gc.freeze()  # the caller waits for the exit: skip the shutdown collections (see
 
 
 _helper = None
-_helper_parts: tuple[str, ...] = ()
 
 
 def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
@@ -290,17 +289,21 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     bisection kernels and the linear steps' threaded passes).  Returns whether a
     helper runs.
     """
-    global _helper, _helper_parts
+    global _helper
     if _helper is not None and _helper.poll() is None:
         return True
     _helper = spawn_compile_helper(*parts)
     if _helper is None:
         return False
-    _helper_parts = tuple(_helper.args[5:])  # those not cached (argv: see _HELPER_CODE)
     # the patch kernel's largest callee, here, while the helper imports
     # fastmem and compiles the coefficient pass: it then loads it from the cache
     flux.precompile("solvers")
     return True
+
+
+def _parts_of(proc) -> tuple[str, ...]:
+    """Return the parts a helper compiles (those not cached when it started), from its argv."""
+    return () if proc is None else tuple(proc.args[5:])  # (argv: see _HELPER_CODE)
 
 
 def _patch_kernel(part: str):
@@ -577,7 +580,7 @@ def warm_up(
     helper = _take_helper() if uses_flux and start_compile_helper(parts) else None
     # the bisection kernels in the helper, after the patch kernel (an adaptive
     # solve's refinement waits for it; a ``fastmem run`` started it with its parts)
-    helper_parts = _helper_parts if helper is not None else ()
+    helper_parts = _parts_of(helper)
     refinement_apart = "refinement" in helper_parts
     if helper is not None:
         _kflux.compile_gate = lambda: _wait_for_kernel(helper, part)

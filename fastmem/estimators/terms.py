@@ -75,7 +75,7 @@ from ..fem.loaddata import integrals
 from ..kernels import cut as _cut
 from ..kernels import pool as _par
 from ..kernels import sums as _sums
-from ..linalg.sparse import read_only, threaded
+from ..linalg.sparse import plain_float64, read_only, threaded
 
 __all__ = [
     "combine",
@@ -360,17 +360,6 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     }
 
 
-def _plain(arrays, length) -> bool:
-    """Tell whether every array is a contiguous float64 ndarray of shape ``(length,)``."""
-    return all(
-        isinstance(x, np.ndarray)
-        and x.dtype == np.float64
-        and x.shape == (length,)
-        and x.flags.c_contiguous
-        for x in arrays
-    )
-
-
 def _global_blocks(mesh, u1, u2, lam, r1, r2):
     """Return the five squared norms of :func:`global_terms` from one pass of the threads.
 
@@ -384,7 +373,7 @@ def _global_blocks(mesh, u1, u2, lam, r1, r2):
     """
     m = mesh.n_triangles
     vectors = (u1, u2, lam, r1, r2)
-    if m < BLOCK_SUM_TRIANGLES or not _plain(vectors, mesh.n_vertices):
+    if m < BLOCK_SUM_TRIANGLES or not plain_float64(vectors, mesh.n_vertices):
         return None
     blocks = -(-m // _sums.BLOCK)
     out = np.empty((blocks, len(_sums.GLOBAL_SUMS)))
@@ -435,7 +424,7 @@ def _block_sums(eta_F1, eta_F2, local):
         eta_F2,
     ]
     m = getattr(arrays[0], "shape", (0,))[0] if getattr(arrays[0], "ndim", 0) == 1 else 0
-    if m < BLOCK_SUM_TRIANGLES or not _plain(arrays, m):
+    if m < BLOCK_SUM_TRIANGLES or not plain_float64(arrays, m):
         return None
     blocks = -(-m // _sums.BLOCK)
     out = np.empty((blocks, len(_sums.COMBINE_SUMS)))

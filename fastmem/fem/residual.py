@@ -6,7 +6,7 @@ import numpy as np
 
 from ..kernels import pool as _par
 from ..kernels.smooth import residual_pair_range
-from ..linalg.sparse import THREADED_ROWS, as_unsigned, read_only, threaded
+from ..linalg.sparse import THREADED_ROWS, as_unsigned, plain_float64, read_only, threaded
 
 __all__ = ["residuals"]
 
@@ -50,9 +50,7 @@ def _fused(a1, a2, u1, u2, lam, f1, f2, b, bnd):
         or a1.indices.dtype not in (np.int32, np.int64)
         or a1.indptr.dtype != a1.indices.dtype
         or not all(m.dtype == np.float64 and m.data.flags.c_contiguous for m in (a1, a2))
-        or not all(
-            isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == (n,) for x in vectors
-        )
+        or not plain_float64(vectors, n)
     ):
         return None
     return fused_residuals(a1, a2, u1, u2, lam, f1, f2, b, bnd)

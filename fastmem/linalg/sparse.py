@@ -28,6 +28,20 @@ def as_unsigned(index: np.ndarray) -> np.ndarray:
     return index.view(np.uint32 if index.dtype == np.int32 else np.uint64)
 
 
+def plain_float64(arrays, length: int) -> bool:
+    """Tell whether every array is a C-contiguous float64 ndarray of shape ``(length,)``.
+
+    The vectors the kernel paths take as they are (others go to the NumPy paths).
+    """
+    return all(
+        isinstance(x, np.ndarray)
+        and x.dtype == np.float64
+        and x.shape == (length,)
+        and x.flags.c_contiguous
+        for x in arrays
+    )
+
+
 def read_only(x: np.ndarray) -> np.ndarray:
     """Return ``x`` as a read-only view (``x`` itself when it is read-only already).
 
@@ -161,18 +175,33 @@ def threaded_submatrix(a, rows, cols):
     col_map[cols] = np.arange(cols.size)
     rows = read_only(np.ascontiguousarray(rows, dtype=np.int64))
     col_map = read_only(col_map)
+    data, indices, new_ptr = _kept_rows(
+        a, rows.size, submatrix_counts_range, (rows, col_map),
+        submatrix_fill_range, (a.data, rows, col_map), a.indices.dtype,
+    )  # fmt: skip
+    return sp.csr_matrix((data, indices, new_ptr), shape=(rows.size, cols.size), copy=False)
+
+
+def _kept_rows(a, n_rows, count, count_args, fill, fill_args, index_dtype):
+    """Build the rows of a CSR matrix from ``a`` by a count pass and a fill pass.
+
+    ``count(lo, hi, indptr, indices, *count_args, counts)`` writes the entries each
+    new row keeps; after their prefix sum ``fill(lo, hi, indptr, indices,
+    *fill_args, new_ptr, out_indices, out_data)`` copies them (row chunks in the
+    kernel threads, :mod:`fastmem.kernels.masked`).  Returns ``(data, indices,
+    indptr)``: indices of dtype ``index_dtype``, the pointer of ``a``'s dtype.
+    """
     indptr, indices = as_unsigned(a.indptr), as_unsigned(a.indices)
-    counts = np.empty(rows.size, dtype=indptr.dtype)
-    _par.parallel_for(submatrix_counts_range, rows.size, indptr, indices, rows, col_map, counts)
-    new_ptr = np.zeros(rows.size + 1, dtype=a.indptr.dtype)
+    counts = np.empty(n_rows, dtype=indptr.dtype)
+    _par.parallel_for(count, n_rows, indptr, indices, *count_args, counts)
+    new_ptr = np.zeros(n_rows + 1, dtype=a.indptr.dtype)
     np.cumsum(counts, out=new_ptr[1:], dtype=new_ptr.dtype)
-    out_indices = np.empty(int(new_ptr[-1]), dtype=a.indices.dtype)
+    out_indices = np.empty(int(new_ptr[-1]), dtype=index_dtype)
     out_data = np.empty(out_indices.size, dtype=np.float64)
     _par.parallel_for(
-        submatrix_fill_range, rows.size, indptr, indices, a.data, rows, col_map,
-        as_unsigned(new_ptr), out_indices, out_data,
-    )  # fmt: skip
-    return sp.csr_matrix((out_data, out_indices, new_ptr), shape=(rows.size, cols.size), copy=False)
+        fill, n_rows, indptr, indices, *fill_args, as_unsigned(new_ptr), out_indices, out_data
+    )
+    return out_data, out_indices, new_ptr
 
 
 def masked_gap(a, active: np.ndarray):
@@ -187,30 +216,11 @@ def masked_gap(a, active: np.ndarray):
     """
     if not _kernel_arrays(a) or a.dtype != np.float64:
         return None
-    n = a.shape[0]
-    indptr, indices = as_unsigned(a.indptr), as_unsigned(a.indices)
-    data = a.data
     mask = np.ascontiguousarray(active, dtype=np.bool_)
-    counts = np.empty(n, dtype=indptr.dtype)
-    _par.parallel_for(gap_counts_range, n, indptr, indices, data, mask, counts)
-    new_ptr = np.zeros(n + 1, dtype=a.indptr.dtype)
-    np.cumsum(counts, out=new_ptr[1:], dtype=new_ptr.dtype)
-    nnz = int(new_ptr[-1])
-    out_indices = np.empty(nnz, dtype=indices.dtype)
-    out_data = np.empty(nnz, dtype=np.float64)
-    _par.parallel_for(
-        gap_fill_range,
-        n,
-        indptr,
-        indices,
-        data,
-        mask,
-        as_unsigned(new_ptr),
-        out_indices,
-        out_data,
-    )
-    out = sp.csr_matrix(
-        (out_data, out_indices.view(a.indices.dtype), new_ptr), shape=a.shape, copy=False
-    )
+    data, indices, new_ptr = _kept_rows(
+        a, a.shape[0], gap_counts_range, (a.data, mask), gap_fill_range, (a.data, mask),
+        as_unsigned(a.indices).dtype,
+    )  # fmt: skip
+    out = sp.csr_matrix((data, indices.view(a.indices.dtype), new_ptr), shape=a.shape, copy=False)
     out.has_sorted_indices = a.has_sorted_indices
     return out

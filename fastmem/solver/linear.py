@@ -46,6 +46,7 @@ from ..linalg.direct import factorize
 from ..linalg.sparse import (
     THREADED_ROWS,
     as_unsigned,
+    plain_float64,
     read_only,
     submatrix,
     threaded_submatrix,
@@ -261,8 +262,8 @@ class DecoupledStep(_Base):
         ni, a = self.interior.size, self.a_ii
         if (
             ni < THREADED_ROWS
-            or not _plain_vector(w_i, ni)
-            or not (_plain_vector(s, self.n) or _plain_vector(s, ni))
+            or not plain_float64((w_i,), ni)
+            or not (plain_float64((s,), self.n) or plain_float64((s,), ni))
             or not isinstance(a, sp.csr_matrix)
             or a.indices.dtype not in (np.int32, np.int64)
             or a.indptr.dtype != a.indices.dtype
@@ -314,10 +315,6 @@ def precompile() -> None:
     )  # fmt: skip
     step = DecoupledStep(scene)
     threaded_triple(step, np.zeros(ii.size, dtype=bool), z, z[ii])
-
-
-def _plain_vector(x, n) -> bool:
-    return isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == (n,)
 
 
 def make_step(scene, path: str = "auto"):

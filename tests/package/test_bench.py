@@ -205,8 +205,6 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
     for r in solved:
         by_case.setdefault((r["multigrid"], r["scene"]), set()).add(r["eta"])
     assert all(len(etas) == 1 for etas in by_case.values()), by_case
-    ones = [r for r in solved if r["threads"] == 1]
-    assert all(r["solve_speedup_median"] == 1.0 for r in ones)
 
 
 def test_report_and_figures(quick, results):

@@ -236,19 +236,14 @@ def test_archive_datasets_describe_themselves(tmp_path):
 
 def test_warm_up_counts_kernels():
     """In a fresh process warm_up compiles or loads every kernel; a second call has none left."""
-    import subprocess
-    import sys
+    from fresh import run_python
 
     script = (
         "import fastmem as fm\n"
         "a = fm.warm_up('inexact'); b = fm.warm_up('inexact')\n"
         "print(a.compiled + a.loaded, b.compiled + b.loaded, a.seconds > 0)\n"
     )
-    res = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=600, check=False
-    )
-    assert res.returncode == 0, res.stderr
-    first, second, timed = res.stdout.split()
+    first, second, timed = run_python(script).split()
     assert int(first) >= 10  # the default pipeline uses about 15 kernels
     assert int(second) == 0
     assert timed == "True"
