@@ -10,6 +10,7 @@ dependency goes one way: loaddata -> assembly -> callables).
 from __future__ import annotations
 
 import concurrent.futures
+import threading
 
 import numpy as np
 
@@ -20,9 +21,13 @@ from .quadrature import quadrature_points, triangle_rule
 
 __all__ = ["BLOCK", "callable_integrals", "evaluate_callable"]
 
-#: Triangles per block when a callable is evaluated: bounds the (block, n_points)
-#: temporaries (coordinates, values, products) to a few tens of MB.
-BLOCK = 1 << 17
+#: Triangles per block when a callable is evaluated: the (block, n_points) temporaries
+#: (coordinates, values, the callable's own intermediates) stay in the cores' caches,
+#: 0.5 MB each at the 7 points of degree 5.  Blocks of 2^17 triangles (7 MB each) made
+#: every NumPy operation stream through memory: the manufactured load at n = 1024 took
+#: 0.51 s (load vector) and 1.23 s (with moments and oscillation) against 0.20 s and
+#: 0.32 s with 2^13 (2 threads, medians of 5, same bits).
+BLOCK = 1 << 13
 
 
 def evaluate_callable(f, x, y, name="f"):
@@ -63,7 +68,7 @@ def _moments_block(fw, bary, areas) -> np.ndarray:
     return mom.reshape(-1, 3, 3)
 
 
-def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
+def callable_integrals(mesh, f, degree, name="f", want_all=False, parallel=False) -> dict:
     """One blocked pass of the callable ``f(x, y)`` over the points of the rule of ``degree``.
 
     Returns ``{"F": load vector}``, with ``want_all`` also ``"moments"`` (M, 3, 3)
@@ -77,6 +82,13 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
     from the calling thread, so it need not be thread-safe).  At most one block
     waits: the temporaries stay bounded by two blocks, and every number is
     computed by the same operations as in one thread (bit-identical results).
+
+    ``parallel``: ``f`` may be called from several threads at once (the scene's
+    ``parallel_loads``).  Then every thread takes whole blocks in turn (points,
+    ``f``, integrals): NumPy releases the GIL inside its array operations, so a
+    vectorised ``f`` runs on all cores.  Still one block per thread in flight,
+    and bit-identical results; if ``f`` fails, the error raised is that of the
+    first failing block, as in one thread.
     """
     m = mesh.n_triangles
     bary, w = triangle_rule(degree)
@@ -103,7 +115,11 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
             diff = fv / scale[:, None] - coef @ bary.T
             norm[start:stop] = scale * np.sqrt(((diff * diff) @ w) * areas)
 
-    pool = _par.worker_pool() if m > BLOCK and _par.n_threads() > 1 else None
+    threads = _par.n_threads()
+    if parallel and m > BLOCK and threads > 1:
+        _blocks_in_threads(mesh, f, name, bary, integrate, threads)
+        return _finish(mesh, local, mom if want_all else None, norm if want_all else None)
+    pool = _par.worker_pool() if m > BLOCK and threads > 1 else None
     if pool is not None:  # NumPy's error settings are per thread: the caller's apply there too
         errors, plain = np.geterr(), integrate
 
@@ -132,9 +148,47 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False) -> dict:
     finally:  # an error in the calling thread: let the pool thread finish its block first
         if pending is not None:
             concurrent.futures.wait([pending])
+    return _finish(mesh, local, mom if want_all else None, norm if want_all else None)
+
+
+def _finish(mesh, local, mom, norm) -> dict:
     vec = _k.gather_vector(local, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local)
     out = {"F": vec}
-    if want_all:
+    if mom is not None:
         out["moments"] = mom
         out["osc_norm"] = norm
     return out
+
+
+def _blocks_in_threads(mesh, f, name, bary, integrate, threads) -> None:
+    """Run the blocks of :func:`callable_integrals` in ``threads`` threads, taken in turn.
+
+    Blocks are handed out in order from a shared counter.  After a block fails,
+    only the blocks before it still run; the error of the first failing block is
+    raised, so it does not depend on the scheduling.
+    """
+    m = mesh.n_triangles
+    errors = np.geterr()  # NumPy's error settings are per thread: the caller's apply
+    failed = {}  # block start -> exception
+    lock = threading.Lock()
+    pieces = [(start, min(start + BLOCK, m)) for start in range(0, m, BLOCK)]
+
+    def block(start, stop):
+        with lock:
+            if failed and start > min(failed):
+                return
+        try:
+            with np.errstate(**errors):
+                x, y = quadrature_points(
+                    mesh.vertices, mesh.triangles[start:stop], bary, parallel=False
+                )
+                fv = evaluate_callable(f, x, y, name)
+                del x, y
+                integrate(fv, start, stop)
+        except Exception as exc:  # noqa: BLE001 - re-raised below, after the other blocks
+            with lock:
+                failed[start] = exc
+
+    _par.run_pieces(block, pieces, threads)
+    if failed:
+        raise failed[min(failed)]

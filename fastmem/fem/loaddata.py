@@ -115,7 +115,9 @@ def _p1_moments(mesh, f) -> np.ndarray:
 
 
 def _callable(scene, i, f, name, want_all) -> dict:
-    out = callable_integrals(scene.mesh, f, scene.load_degree, name, want_all)
+    out = callable_integrals(
+        scene.mesh, f, scene.load_degree, name, want_all, parallel=scene.parallel_loads
+    )
     if want_all:
         mu = scene.mu1 if i == 1 else scene.mu2
         out["osc"] = (scene.mesh.diameters / math.pi) * out.pop("osc_norm") / np.sqrt(mu)

@@ -50,6 +50,7 @@ from .scene import (
     _scaled,
     boundary_data,
     boundary_vector,
+    check_flag,
 )
 
 __all__ = ["Obstacle", "TWO_MEMBRANE_ONLY"]
@@ -149,6 +150,9 @@ class Obstacle:
     sub_levels : int
         Red refinements of the obstacle band's triangles for the obstacle
         terms of a non-P1 obstacle (docs/obstacle.md §5.2; default 2).
+    parallel_loads : bool
+        A callable load ``f`` may be called from several threads at once (as for
+        :class:`~fastmem.fem.scene.Scene`; default False).
 
     Raises
     ------
@@ -180,6 +184,7 @@ class Obstacle:
         active_c: float = 1.0,
         load_degree: int = DEFAULT_LOAD_DEGREE,
         sub_levels: int = 2,
+        parallel_loads: bool = False,
     ):
         if not isinstance(mesh, Mesh):
             raise InputTypeError(f"mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
@@ -211,6 +216,7 @@ class Obstacle:
                 raise ParameterError(f"{name} must be in [{lo_}, {hi_}], got {value}")
         self.load_degree = int(load_degree)
         self.sub_levels = int(sub_levels)
+        self.parallel_loads = check_flag(parallel_loads, "parallel_loads")
         self._frozen = True
 
     # two-membrane names used by the shared load and flux layers (membrane 1 = this one)

@@ -204,6 +204,15 @@ def boundary_data(mesh, g):
     )
 
 
+def check_flag(value, name: str) -> bool:
+    """``value`` as a bool; ParameterError naming ``name`` unless it is True or False."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ParameterError(
+            f"{name} must be True or False, got {type(value).__name__} {value!r:.40}"
+        )
+    return bool(value)
+
+
 def boundary_vector(mesh, vals) -> np.ndarray:
     """Nodal vector with ``vals`` at the boundary vertices and 0 inside, read-only."""
     out = np.zeros(mesh.n_vertices)
@@ -235,6 +244,14 @@ class Scene:
         of a triple given as ``initial``.
     load_degree : int
         Quadrature degree for callable loads (default 5).
+    parallel_loads : bool
+        The callable loads may be called from several threads at once (default
+        False: they are called from the calling thread only).  Set it for loads
+        that are vectorised NumPy code without shared mutable state: the blocks of
+        quadrature points are then evaluated in all of fastmem's threads
+        (:func:`fastmem.set_threads`), with the same results bit for bit.  The
+        coarser scenes of nested iteration and the refined scenes of the adaptive
+        loop inherit it.
 
     Raises
     ------
@@ -290,6 +307,7 @@ class Scene:
         *,
         active_c: float = 1.0,
         load_degree: int = DEFAULT_LOAD_DEGREE,
+        parallel_loads: bool = False,
     ):
         if not isinstance(mesh, Mesh):
             raise InputTypeError(f"mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
@@ -310,6 +328,7 @@ class Scene:
         if not 1 <= load_degree <= 30:
             raise ParameterError(f"load_degree must be in [1, 30], got {load_degree}")
         self.load_degree = int(load_degree)
+        self.parallel_loads = check_flag(parallel_loads, "parallel_loads")
         self.check_scale()
         self._frozen = True
 

@@ -45,7 +45,16 @@ def twosided(n: int = 64, mesh: Mesh | None = None, **parameters) -> Obstacle:
     case = TwoSided(**parameters)
     if mesh is None:
         mesh = Mesh.rectangle(n, n, bounds=(-1.0, 1.0, -1.0, 1.0), diagonal="symmetric")
-    return Obstacle(mesh, mu=case.mu, f=case.load, g=0.0, lower=case.lower, upper=case.upper)
+    # the load is vectorised NumPy without state: it may run in all threads
+    return Obstacle(
+        mesh,
+        mu=case.mu,
+        f=case.load,
+        g=0.0,
+        lower=case.lower,
+        upper=case.upper,
+        parallel_loads=True,
+    )
 
 
 #: name -> factory(n) of the shipped reference problems

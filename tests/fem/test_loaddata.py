@@ -201,3 +201,83 @@ def test_blocks_integrated_beside_the_evaluation_give_the_same_bits(monkeypatch)
     assert threads_seen == {caller}
     for key in ("F", "moments", "osc_norm"):
         np.testing.assert_array_equal(out[1][key].view(np.uint64), out[2][key].view(np.uint64))
+
+
+def _two_threads_or_skip():
+    import numba
+
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one CPU: no second thread")
+    return numba.get_num_threads()
+
+
+def test_parallel_loads_are_evaluated_in_several_threads_with_the_same_bits(monkeypatch):
+    """``parallel_loads``: the blocks go to all threads, f included; the numbers do not move."""
+    import threading
+    import time
+
+    monkeypatch.setattr(callables, "BLOCK", 37)
+    mesh = perturbed_square(12, 0.3)
+    seen = set()
+    lock = threading.Lock()
+
+    def f(x, y):
+        with lock:
+            seen.add(threading.get_ident())
+        time.sleep(0.005)  # (the GIL is let go: the second thread gets blocks too)
+        return np.sin(3.0 * x) * np.exp(y) + x * y
+
+    before = _two_threads_or_skip()
+    try:
+        fm.set_threads(numba=1)
+        ref = callables.callable_integrals(mesh, f, 5, want_all=True)
+        fm.set_threads(numba=2)
+        seen.clear()
+        out = callables.callable_integrals(mesh, f, 5, want_all=True, parallel=True)
+    finally:
+        fm.set_threads(numba=before)
+    assert len(seen) == 2
+    for key in ("F", "moments", "osc_norm"):
+        np.testing.assert_array_equal(out[key].view(np.uint64), ref[key].view(np.uint64))
+
+
+def test_parallel_loads_raise_the_error_of_the_first_failing_block(monkeypatch):
+    """Two threads report the failure that one thread reports, whatever the scheduling."""
+    monkeypatch.setattr(callables, "BLOCK", 16)
+    mesh = fm.Mesh.square(16)
+
+    def f(x, y):  # NaN right of x = 0.2: the first failing block has its own NaN count
+        return np.where(x > 0.2 + 0.01 * y, np.nan, x * y)
+
+    before = _two_threads_or_skip()
+    messages = set()
+    try:
+        fm.set_threads(numba=1)
+        with pytest.raises(fm.errors.DataError, match="f2") as serial:
+            callables.callable_integrals(mesh, f, 5, name="f2")
+        fm.set_threads(numba=2)
+        for _ in range(5):
+            with pytest.raises(fm.errors.DataError, match="f2") as err:
+                callables.callable_integrals(mesh, f, 5, name="f2", parallel=True)
+            messages.add(str(err.value))
+    finally:
+        fm.set_threads(numba=before)
+    assert messages == {str(serial.value)}
+
+
+def test_parallel_loads_is_checked_and_inherited():
+    from fastmem.adapt.loop import refine_scene
+    from fastmem.mesh.refine import refine_marked
+    from fastmem.problems import Manufactured
+    from fastmem.solver.nested import coarse_scene
+
+    mesh = fm.Mesh.square(8)
+    with pytest.raises(fm.errors.ParameterError, match="parallel_loads"):
+        fm.Scene(mesh, f=(np.sin, 0.0), parallel_loads="yes")
+    scene = fm.Scene(mesh, f=(lambda x, y: x * y, 0.0), parallel_loads=True)
+    assert coarse_scene(scene).parallel_loads
+    fine, refinement = refine_marked(mesh, np.arange(4))
+    assert refine_scene(scene, fine, refinement).parallel_loads
+    assert not fm.Scene(mesh).parallel_loads
+    assert Manufactured().scene(mesh).parallel_loads
+    assert not Manufactured().scene(mesh, parallel_loads=False).parallel_loads
