@@ -83,6 +83,7 @@ __all__ = [
     "friedrichs_constant",
     "global_terms",
     "local_terms",
+    "lumped_norm",
     "mass_matrix",
 ]
 
@@ -250,6 +251,24 @@ def mass_matrix(scene):
     if "M" not in scene._cache:
         scene._cache["M"] = assemble_mass(scene.mesh)
     return scene._cache["M"]
+
+
+def lumped_norm(scene, r) -> float | None:
+    """``||rho||`` (L2) of the P1 function ``rho = r / B`` at interior vertices, 0 on the boundary.
+
+    ``r``: a residual vector of one value per vertex (boundary entries ignored), ``B``
+    the lumped mass.  From one pass of the kernel threads over the triangles
+    (:func:`fastmem.kernels.sums.global_blocks`: the element mass matrices, no assembled
+    mass matrix), or None on meshes below :data:`BLOCK_SUM_TRIANGLES` triangles and
+    for a vector that is not contiguous float64 of the right length or not finite
+    (then use :func:`mass_matrix`).  Equal to the mass-matrix product up to round-off.
+    """
+    mesh = scene.mesh
+    if mesh.n_triangles < BLOCK_SUM_TRIANGLES:
+        return None
+    zero = np.zeros(mesh.n_vertices)
+    sums = _global_blocks(mesh, zero, zero, zero, r, zero)
+    return None if sums is None else math.sqrt(max(sums[2], 0.0))
 
 
 def global_terms(scene, u1, u2, lam, r1, r2) -> dict:

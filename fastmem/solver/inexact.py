@@ -45,7 +45,7 @@ from __future__ import annotations
 import logging
 import math
 
-from ..estimators.terms import friedrichs_constant, mass_matrix
+from ..estimators.terms import BLOCK_SUM_TRIANGLES, friedrichs_constant, mass_matrix
 from ..linalg.sparse import threaded
 from ..memory import estimate_memory, meminfo_bytes, memory_limit, rss_bytes
 from .history import ADAPTIVE_HISTORY_COLUMNS
@@ -102,6 +102,18 @@ def memory_pressure(mesh, fraction=None, limit=None) -> bool:
     return bool(room) and need > fraction * min(room)
 
 
+def _mass(scene):
+    """Return the mass matrix for :meth:`DecoupledCG.s_share`, or None where it needs none.
+
+    From :data:`fastmem.estimators.terms.BLOCK_SUM_TRIANGLES` triangles the norm comes
+    from the element mass matrices (:func:`fastmem.estimators.terms.lumped_norm`): no
+    assembled matrix (56 bytes per vertex) lives through the level.
+    """
+    if scene.mesh.n_triangles >= BLOCK_SUM_TRIANGLES:
+        return None
+    return threaded(mass_matrix(scene))
+
+
 def _wants_spill(mesh, limit=None) -> bool:
     if SPILL == "auto":
         return memory_pressure(mesh, limit=limit)
@@ -121,7 +133,7 @@ class AdaptiveStep(AMGStep):
         super().__init__(system, options, prolongation)
         self.check_all = check_all
         if self.decoupled:  # the share of s in eta_alg steers its CG
-            self.mass = threaded(mass_matrix(system.scene))
+            self.mass = _mass(system.scene)
             self.c_f = friedrichs_constant(system.scene.mesh)
         self.spilling = _wants_spill(system.scene.mesh, options.memory_limit)
         self.stats["spill"] = self.spilling
@@ -153,7 +165,7 @@ class AdaptiveStep(AMGStep):
         """Rebuild what :meth:`spill` freed (no-op when nothing was freed)."""
         self.cg.restore()
         if self.decoupled and self.mass is None:
-            self.mass = threaded(mass_matrix(self.cg.system.scene))
+            self.mass = _mass(self.cg.system.scene)
 
     def _skip(self, last, i, budget):
         """Return True when the inner criterion cannot plausibly hold yet (skip the check)."""

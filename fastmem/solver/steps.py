@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from ..estimators.terms import lumped_norm, mass_matrix
 from ..linalg.amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner
 from ..linalg.gmg import NestedChain, NestedMG
 from ..linalg.sparse import THREADED_ROWS, masked_gap, submatrix, threaded
@@ -529,8 +530,19 @@ class DecoupledCG:
         return st.triple(self.active, self.cg_s.x, self.cg_w.x)  # s: interior values
 
     def s_share(self, mass, c_f):
-        """Return the part of eta_alg due to the residual of s: C_F ||R_s/B|| / sqrt(mu1 + mu2)."""
+        """Return the part of eta_alg due to the residual of s: C_F ||R_s/B|| / sqrt(mu1 + mu2).
+
+        ``mass``: the consistent mass matrix, or None on meshes where the norm comes from
+        the element mass matrices (:func:`fastmem.estimators.terms.lumped_norm`).
+        """
         st = self.system
+        if mass is None:
+            r = np.zeros(st.n)
+            r[st.interior] = self.cg_s.r
+            norm = lumped_norm(st.scene, r)
+            if norm is not None:
+                return c_f * norm / math.sqrt(st.mu1 + st.mu2)
+            mass = mass_matrix(st.scene)
         rho = np.zeros(st.n)
         rho[st.interior] = self.cg_s.r / st.b_int
         return c_f * math.sqrt(max(float(rho @ (mass @ rho)), 0.0) / (st.mu1 + st.mu2))

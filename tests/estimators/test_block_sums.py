@@ -135,3 +135,24 @@ def test_global_terms_kernel_path_still_names_a_bad_value(monkeypatch, name):
     assert terms._global_blocks(m, *args.values()) is None
     with pytest.raises(DataError, match=name):
         terms.global_terms(scene, *args.values())
+
+
+def test_lumped_norm_matches_the_mass_matrix_and_the_solve_assembles_none():
+    """The s-share of eta_alg from the element mass matrices: the assembled norm, no matrix."""
+    from fastmem.solver import inexact
+
+    mesh = fm.Mesh.square(256)  # 131072 triangles: the kernel path
+    scene = fm.Scene(mesh, mu=(1.0, 2.0), f=(-1.0, 1.0), g=0.1)
+    r = np.random.default_rng(5).standard_normal(mesh.n_vertices)
+    got = terms.lumped_norm(scene, r)
+    rho = np.where(mesh.boundary_vertex_mask, 0.0, r / mesh.lumped_mass)
+    ref = np.sqrt(rho @ (terms.mass_matrix(scene) @ rho))
+    assert got == pytest.approx(ref, rel=1e-12, abs=0.0)
+    small = fm.Scene(fm.Mesh.square(64))
+    assert terms.lumped_norm(small, np.ones(small.mesh.n_vertices)) is None
+    assert inexact._mass(small) is not None
+    fresh = fm.Scene(mesh, mu=(1.0, 2.0), f=(-1.0, 1.0), g=0.1)
+    assert inexact._mass(fresh) is None
+    result = fm.solve(fresh, nested=False)
+    assert result.converged
+    assert "M" not in fresh._cache  # no consistent mass matrix on this mesh
