@@ -104,8 +104,9 @@ _SLACK = 1e-13
 # for edges as long as the radius of the contact disc (10 points leave 1e-13 at n = 8).
 _EDGE_POINTS = 16
 
-# Number of edges / triangles processed at once (bounds the memory of temporaries).
-_CHUNK = 1 << 16
+# Number of edges / triangles processed at once: small enough that the temporaries stay in
+# the caches (n = 1024: the energy error in 1.1-1.2 s against 1.7-2.7 s with 2^16, same bits).
+_CHUNK = 1 << 13
 
 
 # --------------------------------------------------------------------------- helpers

@@ -77,8 +77,10 @@ MIN_ERROR_DEGREE = 6
 #: Default quadrature degree for error integrals.
 DEFAULT_ERROR_DEGREE = 7
 
-# Number of triangles processed at once by the error integrals (bounds memory).
-_CHUNK = 1 << 16
+# Number of triangles processed at once by the error integrals: the (chunk, points)
+# arrays stay in the caches (0.8 MB at the 13 points of degree 7); 2^16 made every NumPy
+# operation stream through memory (n = 1024: 1.84-2.46 s against 0.83-0.90 s, same bits).
+_CHUNK = 1 << 13
 
 GradientFunction = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 

@@ -68,8 +68,9 @@ ERROR_DEGREE = 8
 # just outside the circle inside (Lambda_psi jumps up across the circle of D_-).
 _P_TOL = 1e-12
 
-# Triangles processed at once by the error integral (bounds memory).
-_CHUNK = 1 << 15
+# Triangles processed at once by the error integral: small enough that the (chunk, points)
+# arrays stay in the caches (n = 1024: 0.54-0.63 s against 0.83-1.32 s with 2^15, same bits).
+_CHUNK = 1 << 13
 
 
 # --------------------------------------------------------------------------- interval helpers
