@@ -10,6 +10,7 @@ dependency goes one way: loaddata -> assembly -> callables).
 from __future__ import annotations
 
 import concurrent.futures
+import logging
 import threading
 
 import numpy as np
@@ -19,7 +20,9 @@ from ..kernels import assembly as _k
 from ..kernels import pool as _par
 from .quadrature import quadrature_points, triangle_rule
 
-__all__ = ["BLOCK", "callable_integrals", "evaluate_callable"]
+__all__ = ["BLOCK", "HINT_TRIANGLES", "callable_integrals", "evaluate_callable"]
+
+logger = logging.getLogger(__name__)
 
 #: Triangles per block when a callable is evaluated: the (block, n_points) temporaries
 #: (coordinates, values, the callable's own intermediates) stay in the cores' caches,
@@ -59,6 +62,26 @@ def evaluate_callable(f, x, y, name="f"):
             f"{name}(x, y) returned NaN or inf at {int((~np.isfinite(val)).sum())} points"
         )
     return val
+
+
+#: From this many triangles a serial callable pass logs (once per process, INFO) that
+#: ``parallel_loads=True`` would evaluate the callable in all threads.
+HINT_TRIANGLES = 1 << 18
+
+_hinted = False
+
+
+def _hint_parallel(name: str) -> None:
+    global _hinted
+    if not _hinted:
+        _hinted = True
+        logger.info(
+            "%s(x, y) is evaluated in the calling thread only; if the loads are thread-safe "
+            "(vectorised NumPy without shared mutable state), Scene(..., parallel_loads=True) "
+            "evaluates them in all %d threads",
+            name,
+            _par.n_threads(),
+        )
 
 
 def _moments_block(fw, bary, areas) -> np.ndarray:
@@ -119,6 +142,8 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False, parallel=False
     if parallel and m > BLOCK and threads > 1:
         _blocks_in_threads(mesh, f, name, bary, integrate, threads)
         return _finish(mesh, local, mom if want_all else None, norm if want_all else None)
+    if not parallel and m >= HINT_TRIANGLES and threads > 1:
+        _hint_parallel(name)
     pool = _par.worker_pool() if m > BLOCK and threads > 1 else None
     if pool is not None:  # NumPy's error settings are per thread: the caller's apply there too
         errors, plain = np.geterr(), integrate

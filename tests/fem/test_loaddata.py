@@ -281,3 +281,23 @@ def test_parallel_loads_is_checked_and_inherited():
     assert not fm.Scene(mesh).parallel_loads
     assert Manufactured().scene(mesh).parallel_loads
     assert not Manufactured().scene(mesh, parallel_loads=False).parallel_loads
+
+
+def test_serial_callable_pass_hints_at_parallel_loads_once(monkeypatch, caplog):
+    import logging
+
+    before = _two_threads_or_skip()
+    monkeypatch.setattr(callables, "HINT_TRIANGLES", 16)
+    monkeypatch.setattr(callables, "_hinted", False)
+    mesh = fm.Mesh.square(8)
+    try:
+        fm.set_threads(numba=2)
+        with caplog.at_level(logging.INFO, logger="fastmem.fem.callables"):
+            callables.callable_integrals(mesh, np.hypot, 5, parallel=True)
+            assert "parallel_loads=True" not in caplog.text
+            callables.callable_integrals(mesh, np.hypot, 5, name="f2")
+            callables.callable_integrals(mesh, np.hypot, 5, name="f2")
+    finally:
+        fm.set_threads(numba=before)
+    assert caplog.text.count("parallel_loads=True") == 1
+    assert "f2(x, y) is evaluated in the calling thread only" in caplog.text
