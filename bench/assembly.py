@@ -5,6 +5,13 @@ into CSR, the once-per-mesh pattern and position map, and reports Numba
 compilation separately (a fresh process with an empty cache, and one with a
 warm cache).  Checks that both codes assemble the same matrix.
 
+Callable loads: one pass of the manufactured load ``f1`` (``fastmem.problems.
+Manufactured``) over the quadrature points of degree 5, the load vector alone and
+with the flux moments and the oscillation
+(:func:`fastmem.fem.callables.callable_integrals`), in blocks of 2^17 triangles
+(before 2026-12-02), in blocks of 2^13 (the default) and with ``parallel=True``
+(``Scene(parallel_loads=True)``); checks that all give the same bits.
+
     python -m bench.assembly [--quick] [--sizes 256 1024 2048] [--results DIR]
 """
 
@@ -47,6 +54,40 @@ def compile_times():
             imp, first = map(float, res.stdout.split())
             out[label] = {"import_s": imp, "first_calls_s": first}
     return out
+
+
+#: (label, block size, parallel) of the callable-load passes
+CALLABLE_CASES = (
+    ("block_2^17", 1 << 17, False),
+    ("block_2^13", 1 << 13, False),
+    ("block_2^13_parallel", 1 << 13, True),
+)
+
+
+def callable_loads(mesh, repeat):
+    """Seconds of one callable-load pass per case (:data:`CALLABLE_CASES`); same bits?"""
+    from fastmem.fem import callables
+    from fastmem.problems import Manufactured
+
+    f = Manufactured().f1
+    block = callables.BLOCK
+    times, first = {}, {}
+    identical = True
+    try:
+        for label, size, parallel in CALLABLE_CASES:
+            callables.BLOCK = size
+            for want in (False, True):
+                out, t = timed(
+                    lambda: callables.callable_integrals(mesh, f, 5, "f1", want, parallel),
+                    repeat,
+                )
+                key = f"{label}{'_moments' if want else ''}"
+                times[key] = t
+                ref = first.setdefault(want, out)
+                identical &= all(np.array_equal(out[k], ref[k]) for k in ref)
+    finally:
+        callables.BLOCK = block
+    return {"callable_load_s": times, "callable_identical": bool(identical)}
 
 
 def run(sizes, repeat):
@@ -124,11 +165,15 @@ def run(sizes, repeat):
             row["max_abs_diff_vs_skfem"] = float(abs(a - a_sk).max())
             row["ratio_skfem_over_fastmem"] = t_sk["median"] / t_total["median"]
             del a_sk
+        row.update(callable_loads(mesh, repeat))
         row["peak_rss_mb"] = peak_rss_mb()
         rows.append(row)
         progress(
             f"  coo kernel {t_kernel['median']:.4f}s gather {t_gather['median']:.4f}s "
             f"fused {t_total['median']:.4f}s scipy tocsr {t_tocsr['median']:.4f}s "
+            + "callable load "
+            + " ".join(f"{k} {v['median']:.3f}s" for k, v in row["callable_load_s"].items())
+            + f" (same bits: {row['callable_identical']}) "
             + (
                 f"skfem {row['skfem_s']['median']:.3f}s ratio {row['ratio_skfem_over_fastmem']:.1f}"
                 if "skfem_s" in row

@@ -89,6 +89,8 @@ def test_assembly_matches_scikit_fem(quick):
         assert {"coo_kernel_s", "assemble_stiffness_fused_s", "skfem_s"} <= set(r)
         assert r["max_abs_diff_vs_skfem"] < 1e-12
         assert r["ratio_skfem_over_fastmem"] > 0
+        assert r["callable_identical"] is True  # every block size and thread mode: same bits
+        assert len(r["callable_load_s"]) == 6
 
 
 def test_poisson_unit_converges(quick):
