@@ -448,6 +448,13 @@ def enclosing_radius(px, py) -> np.ndarray:
     """
     px = np.asarray(px, dtype=np.float64)
     py = np.asarray(py, dtype=np.float64)
+    n = px.shape[0]
+    if n > ENVELOPE_ROWS:  # per triangle: in blocks whose temporaries stay in the caches
+        out = np.empty(n)
+        for start in range(0, n, ENVELOPE_ROWS):
+            rows = slice(start, min(start + ENVELOPE_ROWS, n))
+            out[rows] = enclosing_radius(px[rows], py[rows])
+        return out
     ex = np.roll(px, -1, axis=1) - px
     ey = np.roll(py, -1, axis=1) - py
     l2 = np.sort(ex * ex + ey * ey, axis=1)  # squared edge lengths, ascending
@@ -501,7 +508,26 @@ class _Side:
         return self.sign * evaluate_callable(self.func, x, y, self.side)
 
     def envelope(self, px, py):
-        """``(m_minus, m_plus, U)`` of the mirrored obstacle."""
+        """``(m_minus, m_plus, U)`` of the mirrored obstacle.
+
+        Over more than :data:`ENVELOPE_ROWS` triangles the obstacle's ``envelope`` is
+        called on consecutive slices of that many (its bounds are per triangle), so
+        that the NumPy temporaries of a vectorised envelope stay in the caches.
+        """
+        n = px.shape[0]
+        if n <= ENVELOPE_ROWS:
+            return self._envelope(px, py)
+        mm, mp, lam_up = np.empty(n), np.empty(n), np.empty((n, 3))
+        for start in range(0, n, ENVELOPE_ROWS):
+            rows = slice(start, min(start + ENVELOPE_ROWS, n))
+            a, b, c = self._envelope(px[rows], py[rows])
+            size = rows.stop - rows.start
+            mm[rows] = np.broadcast_to(a, (size,))
+            mp[rows] = np.broadcast_to(b, (size,))
+            lam_up[rows] = np.broadcast_to(c, (size, 3))
+        return mm, mp, lam_up
+
+    def _envelope(self, px, py):
         mm, mp, lam_up = self.func.envelope(px, py)
         mm, mp = np.asarray(mm, dtype=np.float64), np.asarray(mp, dtype=np.float64)
         lam_up = np.asarray(lam_up, dtype=np.float64)
@@ -510,6 +536,12 @@ class _Side:
         if self.sign < 0:
             mm, mp = mp, mm
         return mm, mp, lam_up
+
+
+#: Triangles (or pieces) per call of an obstacle's ``envelope`` and per block of
+#: :func:`enclosing_radius`: small enough that the NumPy temporaries stay in the caches
+#: (as for callable loads, :data:`fastmem.fem.callables.BLOCK`).
+ENVELOPE_ROWS = 1 << 13
 
 
 def _triangle_envelope(problem, side: _Side, need_exact):

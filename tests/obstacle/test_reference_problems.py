@@ -194,3 +194,42 @@ def test_warm_up_of_an_obstacle_covers_its_solve():
     fm.solve(ball(192))  # 37,249 vertices: the threaded active-set matrices
     compiled = [d.__name__ for d in dispatchers if sum(d.stats.cache_misses.values()) != before[d]]
     assert compiled == []
+
+
+def test_envelopes_and_radii_in_row_blocks_give_the_same_bits(monkeypatch):
+    """The obstacle's envelope and the radii, called on slices of rows: same bound, same bits."""
+    problem = twosided(24)
+    ref = fm.solve(problem)
+    rng = np.random.default_rng(3)
+    px, py = rng.random((100, 3)), rng.random((100, 3))
+    radius = est.enclosing_radius(px, py)
+    side = est._Side(problem, "upper")
+    whole = side.envelope(px, py)
+    monkeypatch.setattr(est, "ENVELOPE_ROWS", 7)
+    np.testing.assert_array_equal(est.enclosing_radius(px, py), radius)
+    for a, b in zip(side.envelope(px, py), whole, strict=True):
+        np.testing.assert_array_equal(a, b)
+    got = fm.solve(twosided(24))
+    assert got.eta == ref.eta
+    np.testing.assert_array_equal(got.u, ref.u)
+
+
+def test_envelope_blocks_keep_a_pressure_bound_per_triangle(monkeypatch):
+    """An envelope whose pressure bound is one value per triangle: (P, 3) in blocks too."""
+
+    class Flat:
+        def __call__(self, x, y):
+            return -0.2 + 0.0 * x
+
+        def envelope(self, px, py):
+            n = px.shape[0]
+            return np.zeros(n), np.zeros(n), px[:, 0] + 2.0 * py[:, 1]
+
+    problem = fm.Obstacle(fm.Mesh.square(8), f=-10.0, lower=Flat())
+    side = est._Side(problem, "lower")
+    px, py = np.random.default_rng(4).random((2, 20, 3))
+    monkeypatch.setattr(est, "ENVELOPE_ROWS", 6)
+    mm, mp, lam_up = side.envelope(px, py)
+    assert mm.shape == mp.shape == (20,)
+    want = px[:, 0] + 2.0 * py[:, 1]
+    np.testing.assert_array_equal(lam_up, np.repeat(want[:, None], 3, axis=1))
