@@ -10,7 +10,7 @@ Manufactured``) over the quadrature points of degree 5, the load vector alone an
 with the flux moments and the oscillation
 (:func:`fastmem.fem.callables.callable_integrals`), in blocks of 2^17 triangles
 (before 2026-12-02), in blocks of 2^13 (the default) and with ``parallel=True``
-(``Scene(parallel_loads=True)``); checks that all give the same bits.
+(``Scene(parallel_callables=True)``); checks that all give the same bits.
 
     python -m bench.assembly [--quick] [--sizes 256 1024 2048] [--results DIR]
 """

@@ -208,7 +208,7 @@ def refine_scene(scene: Scene, mesh, refinement) -> Scene:
         g=g,
         active_c=scene.active_c,
         load_degree=scene.load_degree,
-        parallel_loads=scene.parallel_loads,
+        parallel_callables=scene.parallel_callables,
     )
 
 

@@ -74,7 +74,7 @@ def refine_problem(problem: Obstacle, mesh, refinement) -> Obstacle:
         active_c=problem.active_c,
         load_degree=problem.load_degree,
         sub_levels=problem.sub_levels,
-        parallel_loads=problem.parallel_loads,
+        parallel_callables=problem.parallel_callables,
     )
 
 

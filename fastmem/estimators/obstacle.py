@@ -30,12 +30,13 @@ import numba
 import numpy as np
 
 from ..errors import DataError, NumericalError
-from ..fem.callables import evaluate_callable
+from ..fem.callables import evaluate_callable, run_blocks
 from ..fem.loaddata import integrals
 from ..fem.quadrature import triangle_rule
 from ..kernels import cut as _cut
 from ..kernels import flux as _kf
 from ..kernels import obstacle as _kob
+from ..kernels import pool as _par
 from .flux import _coloring, _mu_array, patch_classes
 from .terms import friedrichs_constant, mass_matrix
 
@@ -512,19 +513,22 @@ class _Side:
 
         Over more than :data:`ENVELOPE_ROWS` triangles the obstacle's ``envelope`` is
         called on consecutive slices of that many (its bounds are per triangle), so
-        that the NumPy temporaries of a vectorised envelope stay in the caches.
+        that the NumPy temporaries of a vectorised envelope stay in the caches; with
+        the problem's ``parallel_callables`` the slices run in all threads.
         """
         n = px.shape[0]
         if n <= ENVELOPE_ROWS:
             return self._envelope(px, py)
         mm, mp, lam_up = np.empty(n), np.empty(n), np.empty((n, 3))
-        for start in range(0, n, ENVELOPE_ROWS):
-            rows = slice(start, min(start + ENVELOPE_ROWS, n))
-            a, b, c = self._envelope(px[rows], py[rows])
-            size = rows.stop - rows.start
-            mm[rows] = np.broadcast_to(a, (size,))
-            mp[rows] = np.broadcast_to(b, (size,))
-            lam_up[rows] = np.broadcast_to(c, (size, 3))
+
+        def rows(start, stop):
+            mm[start:stop], mp[start:stop], lam_up[start:stop] = self._envelope(
+                px[start:stop], py[start:stop]
+            )
+
+        # with parallel_callables the blocks run in all threads (the same bits)
+        threads = _par.n_threads() if getattr(self.problem, "parallel_callables", False) else 1
+        run_blocks(rows, n, ENVELOPE_ROWS, threads)
         return mm, mp, lam_up
 
     def _envelope(self, px, py):

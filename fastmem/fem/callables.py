@@ -20,7 +20,7 @@ from ..kernels import assembly as _k
 from ..kernels import pool as _par
 from .quadrature import quadrature_points, triangle_rule
 
-__all__ = ["BLOCK", "HINT_TRIANGLES", "callable_integrals", "evaluate_callable"]
+__all__ = ["BLOCK", "HINT_TRIANGLES", "callable_integrals", "evaluate_callable", "run_blocks"]
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def evaluate_callable(f, x, y, name="f"):
 
 
 #: From this many triangles a serial callable pass logs (once per process, INFO) that
-#: ``parallel_loads=True`` would evaluate the callable in all threads.
+#: ``parallel_callables=True`` would evaluate the callable in all threads.
 HINT_TRIANGLES = 1 << 18
 
 _hinted = False
@@ -77,7 +77,7 @@ def _hint_parallel(name: str) -> None:
         _hinted = True
         logger.info(
             "%s(x, y) is evaluated in the calling thread only; if the loads are thread-safe "
-            "(vectorised NumPy without shared mutable state), Scene(..., parallel_loads=True) "
+            "(vectorised NumPy without shared mutable state), Scene(..., parallel_callables=True) "
             "evaluates them in all %d threads",
             name,
             _par.n_threads(),
@@ -107,7 +107,7 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False, parallel=False
     computed by the same operations as in one thread (bit-identical results).
 
     ``parallel``: ``f`` may be called from several threads at once (the scene's
-    ``parallel_loads``).  Then every thread takes whole blocks in turn (points,
+    ``parallel_callables``).  Then every thread takes whole blocks in turn (points,
     ``f``, integrals): NumPy releases the GIL inside its array operations, so a
     vectorised ``f`` runs on all cores.  Still one block per thread in flight,
     and bit-identical results; if ``f`` fails, the error raised is that of the
@@ -186,34 +186,43 @@ def _finish(mesh, local, mom, norm) -> dict:
 
 
 def _blocks_in_threads(mesh, f, name, bary, integrate, threads) -> None:
-    """Run the blocks of :func:`callable_integrals` in ``threads`` threads, taken in turn.
+    """Run the blocks of :func:`callable_integrals` in ``threads`` threads (:func:`run_blocks`)."""
 
-    Blocks are handed out in order from a shared counter.  After a block fails,
-    only the blocks before it still run; the error of the first failing block is
-    raised, so it does not depend on the scheduling.
+    def block(start, stop):
+        x, y = quadrature_points(mesh.vertices, mesh.triangles[start:stop], bary, parallel=False)
+        fv = evaluate_callable(f, x, y, name)
+        del x, y
+        integrate(fv, start, stop)
+
+    run_blocks(block, mesh.n_triangles, BLOCK, threads)
+
+
+def run_blocks(fn, n: int, block: int, threads: int) -> None:
+    """Call ``fn(start, stop)`` on the blocks of ``range(n)``, taken in turn by ``threads`` threads.
+
+    For user callables on blocks of rows (``parallel_callables``): ``fn`` writes only
+    its own rows, so the result does not depend on the scheduling.  Blocks are
+    handed out in order from a shared counter; after a block fails, only the
+    blocks before it still run, and the error of the first failing block is
+    raised, as in one thread.  NumPy's error settings of the calling thread apply
+    in every thread.
     """
-    m = mesh.n_triangles
     errors = np.geterr()  # NumPy's error settings are per thread: the caller's apply
     failed = {}  # block start -> exception
     lock = threading.Lock()
-    pieces = [(start, min(start + BLOCK, m)) for start in range(0, m, BLOCK)]
+    pieces = [(start, min(start + block, n)) for start in range(0, n, block)]
 
-    def block(start, stop):
+    def one(start, stop):
         with lock:
             if failed and start > min(failed):
                 return
         try:
             with np.errstate(**errors):
-                x, y = quadrature_points(
-                    mesh.vertices, mesh.triangles[start:stop], bary, parallel=False
-                )
-                fv = evaluate_callable(f, x, y, name)
-                del x, y
-                integrate(fv, start, stop)
+                fn(start, stop)
         except Exception as exc:  # noqa: BLE001 - re-raised below, after the other blocks
             with lock:
                 failed[start] = exc
 
-    _par.run_pieces(block, pieces, threads)
+    _par.run_pieces(one, pieces, max(1, int(threads)))
     if failed:
         raise failed[min(failed)]

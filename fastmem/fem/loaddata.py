@@ -116,7 +116,7 @@ def _p1_moments(mesh, f) -> np.ndarray:
 
 def _callable(scene, i, f, name, want_all) -> dict:
     out = callable_integrals(
-        scene.mesh, f, scene.load_degree, name, want_all, parallel=scene.parallel_loads
+        scene.mesh, f, scene.load_degree, name, want_all, parallel=scene.parallel_callables
     )
     if want_all:
         mu = scene.mu1 if i == 1 else scene.mu2

@@ -150,9 +150,12 @@ class Obstacle:
     sub_levels : int
         Red refinements of the obstacle band's triangles for the obstacle
         terms of a non-P1 obstacle (docs/obstacle.md §5.2; default 2).
-    parallel_loads : bool
-        A callable load ``f`` may be called from several threads at once (as for
-        :class:`~fastmem.fem.scene.Scene`; default False).
+    parallel_callables : bool
+        The callable data (the load ``f``, the obstacles and their ``envelope``)
+        may be called from several threads at once (as for
+        :class:`~fastmem.fem.scene.Scene`; default False): the load's quadrature
+        and the obstacles' envelopes on the band triangles then run in all threads,
+        with the same results bit for bit.
 
     Raises
     ------
@@ -184,7 +187,7 @@ class Obstacle:
         active_c: float = 1.0,
         load_degree: int = DEFAULT_LOAD_DEGREE,
         sub_levels: int = 2,
-        parallel_loads: bool = False,
+        parallel_callables: bool = False,
     ):
         if not isinstance(mesh, Mesh):
             raise InputTypeError(f"mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
@@ -216,7 +219,7 @@ class Obstacle:
                 raise ParameterError(f"{name} must be in [{lo_}, {hi_}], got {value}")
         self.load_degree = int(load_degree)
         self.sub_levels = int(sub_levels)
-        self.parallel_loads = check_flag(parallel_loads, "parallel_loads")
+        self.parallel_callables = check_flag(parallel_callables, "parallel_callables")
         self._frozen = True
 
     # two-membrane names used by the shared load and flux layers (membrane 1 = this one)

@@ -244,14 +244,14 @@ class Scene:
         of a triple given as ``initial``.
     load_degree : int
         Quadrature degree for callable loads (default 5).
-    parallel_loads : bool
-        The callable loads may be called from several threads at once (default
-        False: they are called from the calling thread only).  Set it for loads
+    parallel_callables : bool
+        The callable data may be called from several threads at once (default
+        False: they are called from the calling thread only).  Set it for callables
         that are vectorised NumPy code without shared mutable state: the blocks of
-        quadrature points are then evaluated in all of fastmem's threads
-        (:func:`fastmem.set_threads`), with the same results bit for bit.  The
-        coarser scenes of nested iteration and the refined scenes of the adaptive
-        loop inherit it.
+        quadrature points of the loads are then evaluated in all of fastmem's
+        threads (:func:`fastmem.set_threads`), with the same results bit for bit.
+        The coarser scenes of nested iteration and the refined scenes of the
+        adaptive loop inherit it.
 
     Raises
     ------
@@ -307,7 +307,7 @@ class Scene:
         *,
         active_c: float = 1.0,
         load_degree: int = DEFAULT_LOAD_DEGREE,
-        parallel_loads: bool = False,
+        parallel_callables: bool = False,
     ):
         if not isinstance(mesh, Mesh):
             raise InputTypeError(f"mesh must be a fastmem.Mesh, got {type(mesh).__name__}")
@@ -328,7 +328,7 @@ class Scene:
         if not 1 <= load_degree <= 30:
             raise ParameterError(f"load_degree must be in [1, 30], got {load_degree}")
         self.load_degree = int(load_degree)
-        self.parallel_loads = check_flag(parallel_loads, "parallel_loads")
+        self.parallel_callables = check_flag(parallel_callables, "parallel_callables")
         self.check_scale()
         self._frozen = True
 

@@ -688,7 +688,7 @@ class Manufactured:
         mesh : fastmem.mesh.mesh.Mesh
             A mesh of ``(-1, 1)^2``.
         **options
-            Passed on to :class:`~fastmem.fem.scene.Scene`; ``parallel_loads``
+            Passed on to :class:`~fastmem.fem.scene.Scene`; ``parallel_callables``
             defaults to True (the loads are vectorised NumPy code without state).
 
         Returns
@@ -696,7 +696,7 @@ class Manufactured:
         fastmem.fem.scene.Scene
             ``Scene(mesh, mu=(mu1, mu2), f=(self.f1, self.f2), g=self.g, **options)``.
         """
-        options.setdefault("parallel_loads", True)
+        options.setdefault("parallel_callables", True)
         return Scene(mesh, mu=self._mu, f=(self.f1, self.f2), g=self._g, **options)
 
     def interpolate(self, mesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

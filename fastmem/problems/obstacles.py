@@ -53,7 +53,7 @@ def twosided(n: int = 64, mesh: Mesh | None = None, **parameters) -> Obstacle:
         g=0.0,
         lower=case.lower,
         upper=case.upper,
-        parallel_loads=True,
+        parallel_callables=True,
     )
 
 

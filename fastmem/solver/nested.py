@@ -304,7 +304,7 @@ def coarse_scene(scene: Scene, auxiliary: bool = False) -> Scene | None:
             g=data[2],
             active_c=scene.active_c,
             load_degree=scene.load_degree,
-            parallel_loads=scene.parallel_loads,
+            parallel_callables=scene.parallel_callables,
         )
     except FastmemError as exc:
         if cmap is None:

@@ -108,7 +108,7 @@ def coarse_problem(problem: Obstacle) -> Obstacle | None:
         active_c=problem.active_c,
         load_degree=problem.load_degree,
         sub_levels=problem.sub_levels,
-        parallel_loads=problem.parallel_loads,
+        parallel_callables=problem.parallel_callables,
     )
 
 

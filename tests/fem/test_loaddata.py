@@ -211,8 +211,8 @@ def _two_threads_or_skip():
     return numba.get_num_threads()
 
 
-def test_parallel_loads_are_evaluated_in_several_threads_with_the_same_bits(monkeypatch):
-    """``parallel_loads``: the blocks go to all threads, f included; the numbers do not move."""
+def test_parallel_callables_are_evaluated_in_several_threads_with_the_same_bits(monkeypatch):
+    """``parallel_callables``: the blocks go to all threads, f included; the numbers do not move."""
     import threading
     import time
 
@@ -241,7 +241,7 @@ def test_parallel_loads_are_evaluated_in_several_threads_with_the_same_bits(monk
         np.testing.assert_array_equal(out[key].view(np.uint64), ref[key].view(np.uint64))
 
 
-def test_parallel_loads_raise_the_error_of_the_first_failing_block(monkeypatch):
+def test_parallel_callables_raise_the_error_of_the_first_failing_block(monkeypatch):
     """Two threads report the failure that one thread reports, whatever the scheduling."""
     monkeypatch.setattr(callables, "BLOCK", 16)
     mesh = fm.Mesh.square(16)
@@ -265,25 +265,25 @@ def test_parallel_loads_raise_the_error_of_the_first_failing_block(monkeypatch):
     assert messages == {str(serial.value)}
 
 
-def test_parallel_loads_is_checked_and_inherited():
+def test_parallel_callables_is_checked_and_inherited():
     from fastmem.adapt.loop import refine_scene
     from fastmem.mesh.refine import refine_marked
     from fastmem.problems import Manufactured
     from fastmem.solver.nested import coarse_scene
 
     mesh = fm.Mesh.square(8)
-    with pytest.raises(fm.errors.ParameterError, match="parallel_loads"):
-        fm.Scene(mesh, f=(np.sin, 0.0), parallel_loads="yes")
-    scene = fm.Scene(mesh, f=(lambda x, y: x * y, 0.0), parallel_loads=True)
-    assert coarse_scene(scene).parallel_loads
+    with pytest.raises(fm.errors.ParameterError, match="parallel_callables"):
+        fm.Scene(mesh, f=(np.sin, 0.0), parallel_callables="yes")
+    scene = fm.Scene(mesh, f=(lambda x, y: x * y, 0.0), parallel_callables=True)
+    assert coarse_scene(scene).parallel_callables
     fine, refinement = refine_marked(mesh, np.arange(4))
-    assert refine_scene(scene, fine, refinement).parallel_loads
-    assert not fm.Scene(mesh).parallel_loads
-    assert Manufactured().scene(mesh).parallel_loads
-    assert not Manufactured().scene(mesh, parallel_loads=False).parallel_loads
+    assert refine_scene(scene, fine, refinement).parallel_callables
+    assert not fm.Scene(mesh).parallel_callables
+    assert Manufactured().scene(mesh).parallel_callables
+    assert not Manufactured().scene(mesh, parallel_callables=False).parallel_callables
 
 
-def test_serial_callable_pass_hints_at_parallel_loads_once(monkeypatch, caplog):
+def test_serial_callable_pass_hints_at_parallel_callables_once(monkeypatch, caplog):
     import logging
 
     before = _two_threads_or_skip()
@@ -294,10 +294,10 @@ def test_serial_callable_pass_hints_at_parallel_loads_once(monkeypatch, caplog):
         fm.set_threads(numba=2)
         with caplog.at_level(logging.INFO, logger="fastmem.fem.callables"):
             callables.callable_integrals(mesh, np.hypot, 5, parallel=True)
-            assert "parallel_loads=True" not in caplog.text
+            assert "parallel_callables=True" not in caplog.text
             callables.callable_integrals(mesh, np.hypot, 5, name="f2")
             callables.callable_integrals(mesh, np.hypot, 5, name="f2")
     finally:
         fm.set_threads(numba=before)
-    assert caplog.text.count("parallel_loads=True") == 1
+    assert caplog.text.count("parallel_callables=True") == 1
     assert "f2(x, y) is evaluated in the calling thread only" in caplog.text
