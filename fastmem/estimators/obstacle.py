@@ -587,22 +587,39 @@ def _triangle_envelope(problem, side: _Side, need_exact):
 
 
 def _piece_data(problem, side: _Side, tri: np.ndarray):
-    """Geometry, obstacle values and envelopes of the pieces of triangles ``tri``."""
+    """Geometry, obstacle values and envelopes of the pieces of triangles ``tri``.
+
+    In blocks of triangles (:data:`ENVELOPE_ROWS` pieces each: the NumPy temporaries
+    of the obstacle's values and envelope stay in the caches), in all threads with
+    the problem's ``parallel_callables``; every piece is computed by the same
+    operations either way.
+    """
     mesh = problem.mesh
     ref = _red_pieces(problem.sub_levels)  # (P, 3, 3) barycentric
     npc = ref.shape[0]
-    corners = mesh.vertices[mesh.triangles[tri]]  # (B, 3, 2)
-    pts = np.einsum("pvk,bkd->bpvd", ref, corners)  # (B, P, 3, 2)
-    px = np.ascontiguousarray(pts[..., 0].reshape(-1, 3))
-    py = np.ascontiguousarray(pts[..., 1].reshape(-1, 3))
-    psi_t = side.values(px.ravel(), py.ravel()).reshape(-1, 3)
-    r2 = enclosing_radius(px, py) ** 2
-    if side.kind == "guaranteed":
-        mm, mp, lam_up = side.envelope(px, py)
-        delta, delta_p = 0.5 * mm * r2, 0.5 * mp * r2
-    else:
-        delta = delta_p = np.zeros(px.shape[0])
-        lam_up = _estimated_pressure(problem, side, px, py)
+    rows = tri.size * npc
+    px, py, psi_t, lam_up = (np.empty((rows, 3)) for _ in range(4))
+    delta, delta_p = np.empty(rows), np.empty(rows)
+    guaranteed = side.kind == "guaranteed"
+
+    def block(b0, b1):
+        corners = mesh.vertices[mesh.triangles[tri[b0:b1]]]  # (b, 3, 2)
+        pts = np.einsum("pvk,bkd->bpvd", ref, corners)  # (b, P, 3, 2)
+        r = slice(b0 * npc, b1 * npc)
+        px[r] = pts[..., 0].reshape(-1, 3)
+        py[r] = pts[..., 1].reshape(-1, 3)
+        qx, qy = px[r], py[r]
+        psi_t[r] = side.values(qx.ravel(), qy.ravel()).reshape(-1, 3)
+        r2 = enclosing_radius(qx, qy) ** 2
+        if guaranteed:
+            mm, mp, lam_up[r] = side.envelope(qx, qy)
+            delta[r], delta_p[r] = 0.5 * mm * r2, 0.5 * mp * r2
+        else:
+            delta[r] = delta_p[r] = 0.0
+            lam_up[r] = _estimated_pressure(problem, side, qx, qy)
+
+    threads = _par.n_threads() if getattr(problem, "parallel_callables", False) else 1
+    run_blocks(block, tri.size, max(1, ENVELOPE_ROWS // npc), threads)
     return {
         "ref": ref,
         "npc": npc,

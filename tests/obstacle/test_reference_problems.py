@@ -214,6 +214,21 @@ def test_envelopes_and_radii_in_row_blocks_give_the_same_bits(monkeypatch):
     np.testing.assert_array_equal(got.u, ref.u)
 
 
+def test_estimated_obstacle_pieces_in_row_blocks_give_the_same_bits(monkeypatch):
+    """A callable obstacle without envelope (terms estimated on pieces), in blocks: same bits."""
+
+    def problem():
+        bump = lambda x, y: -0.2 + 0.1 * np.sin(3.0 * x) * np.cos(2.0 * y)  # noqa: E731
+        return fm.Obstacle(fm.Mesh.square(16), f=-10.0, lower=bump, parallel_callables=True)
+
+    ref = fm.solve(problem())
+    assert ref.estimate is not None
+    monkeypatch.setattr(est, "ENVELOPE_ROWS", 7)
+    got = fm.solve(problem())
+    assert got.eta == ref.eta
+    np.testing.assert_array_equal(got.u, ref.u)
+
+
 def test_envelope_blocks_keep_a_pressure_bound_per_triangle(monkeypatch):
     """An envelope whose pressure bound is one value per triangle: (P, 3) in blocks too."""
 
