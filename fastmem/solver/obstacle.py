@@ -40,7 +40,7 @@ from ..estimators import obstacle as _est
 from ..fem.obstacle import Obstacle
 from ..linalg.amg import PCG, amg_preconditioner, check_amg_options
 from ..linalg.direct import factorize
-from ..linalg.sparse import threaded
+from ..linalg.sparse import submatrix, threaded
 from .nested import NESTED_MIN_VERTICES, interpolation_matrix
 from .steps import EXACT_AMG_RTOL, gap_delta, gap_matrix
 
@@ -137,11 +137,12 @@ class _System:
         self.problem = problem
         self.ii = mesh.interior_vertices
         a = problem.weighted
-        rows = a[self.ii]
-        self.a_ii = threaded(rows[:, self.ii].tocsr())
+        # the interior block in the kernel threads on large meshes (scipy's a[ii][:, ii],
+        # entry for entry), and the boundary term from one product: the same row sums
+        self.a_ii = threaded(submatrix(a, self.ii, self.ii))
         self.a_ii.sort_indices()
         gb = problem.boundary_values
-        self.b = problem.load[self.ii] - rows @ gb
+        self.b = problem.load[self.ii] - (a @ gb)[self.ii]
         self.diag = self.a_ii.diagonal()
         n = self.ii.size
         self.psi = problem.psi[self.ii] if problem.psi is not None else np.full(n, -np.inf)
