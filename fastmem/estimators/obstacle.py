@@ -37,6 +37,7 @@ from ..kernels import cut as _cut
 from ..kernels import flux as _kf
 from ..kernels import obstacle as _kob
 from ..kernels import pool as _par
+from ..linalg.sparse import threaded
 from .flux import _coloring, _mu_array, patch_classes
 from .terms import friedrichs_constant, mass_matrix
 
@@ -99,7 +100,7 @@ class ObstacleEstimate:
 def residual(problem, u, lam) -> np.ndarray:
     """``R_a = F_a - (mu A u)_a + B_a lam_a`` at interior vertices, 0 on the boundary."""
     mesh = problem.mesh
-    r = problem.load - problem.weighted @ u + mesh.lumped_mass * lam
+    r = problem.load - threaded(problem.weighted) @ u + mesh.lumped_mass * lam
     r[mesh.boundary_vertex_mask] = 0.0
     return r
 
@@ -126,7 +127,7 @@ def split_multiplier(problem, u, lam):
 
 
 def _mass_norm(problem, v) -> float:
-    m = mass_matrix(problem)
+    m = threaded(mass_matrix(problem))  # the product in the kernel threads, scipy's bits
     return math.sqrt(max(float(v @ (m @ v)), 0.0))
 
 
