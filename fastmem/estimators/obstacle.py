@@ -527,9 +527,7 @@ class _Side:
                 px[start:stop], py[start:stop]
             )
 
-        # with parallel_callables the blocks run in all threads (the same bits)
-        threads = _par.n_threads() if getattr(self.problem, "parallel_callables", False) else 1
-        run_blocks(rows, n, ENVELOPE_ROWS, threads)
+        run_blocks(rows, n, ENVELOPE_ROWS, _callable_threads(self.problem))
         return mm, mp, lam_up
 
     def _envelope(self, px, py):
@@ -541,6 +539,11 @@ class _Side:
         if self.sign < 0:
             mm, mp = mp, mm
         return mm, mp, lam_up
+
+
+def _callable_threads(problem) -> int:
+    """Threads for blocks of the problem's callables: all with ``parallel_callables``, else 1."""
+    return _par.n_threads() if getattr(problem, "parallel_callables", False) else 1
 
 
 #: Triangles (or pieces) per call of an obstacle's ``envelope`` and per block of
@@ -619,8 +622,7 @@ def _piece_data(problem, side: _Side, tri: np.ndarray):
             delta[r] = delta_p[r] = 0.0
             lam_up[r] = _estimated_pressure(problem, side, qx, qy)
 
-    threads = _par.n_threads() if getattr(problem, "parallel_callables", False) else 1
-    run_blocks(block, tri.size, max(1, ENVELOPE_ROWS // npc), threads)
+    run_blocks(block, tri.size, max(1, ENVELOPE_ROWS // npc), _callable_threads(problem))
     return {
         "ref": ref,
         "npc": npc,
