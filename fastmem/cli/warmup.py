@@ -460,8 +460,9 @@ def _precompile_topology(edges: bool = True) -> None:
 def _precompile_sums() -> None:
     """Compile the threaded sums of the bound (meshes of 131,072 triangles and more).
 
-    The maps of :func:`fastmem.estimators.terms.combine` and the norms of
-    :func:`fastmem.estimators.terms.global_terms`, with the types a solve passes.
+    The maps of :func:`fastmem.estimators.terms.combine`, the norms of
+    :func:`fastmem.estimators.terms.global_terms` and of
+    :func:`fastmem.estimators.terms.lumped_norm`, with the types a solve passes.
     """
     maps = [np.zeros(1) for _ in range(6)]
     sums.combine_blocks(0, 1, sums.BLOCK, *maps, np.empty((1, len(sums.COMBINE_SUMS))))
@@ -470,6 +471,10 @@ def _precompile_sums() -> None:
     sums.global_blocks(
         0, 1, sums.BLOCK, mesh.triangles, mesh.areas, *vectors, mesh.lumped_mass,
         mesh.boundary_vertex_mask, np.empty((1, len(sums.GLOBAL_SUMS))),
+    )  # fmt: skip
+    sums.lumped_blocks(
+        0, 1, sums.BLOCK, mesh.triangles, mesh.areas, vectors[0], mesh.lumped_mass,
+        mesh.boundary_vertex_mask, np.empty((1, 2)),
     )  # fmt: skip
 
 

@@ -258,17 +258,24 @@ def lumped_norm(scene, r) -> float | None:
 
     ``r``: a residual vector of one value per vertex (boundary entries ignored), ``B``
     the lumped mass.  From one pass of the kernel threads over the triangles
-    (:func:`fastmem.kernels.sums.global_blocks`: the element mass matrices, no assembled
+    (:func:`fastmem.kernels.sums.lumped_blocks`: the element mass matrices, no assembled
     mass matrix), or None on meshes below :data:`BLOCK_SUM_TRIANGLES` triangles and
     for a vector that is not contiguous float64 of the right length or not finite
     (then use :func:`mass_matrix`).  Equal to the mass-matrix product up to round-off.
     """
     mesh = scene.mesh
-    if mesh.n_triangles < BLOCK_SUM_TRIANGLES:
+    m = mesh.n_triangles
+    if m < BLOCK_SUM_TRIANGLES or not plain_float64((r,), mesh.n_vertices):
         return None
-    zero = np.zeros(mesh.n_vertices)
-    sums = _global_blocks(mesh, zero, zero, zero, r, zero)
-    return None if sums is None else math.sqrt(max(sums[2], 0.0))
+    blocks = -(-m // _sums.BLOCK)
+    out = np.empty((blocks, 2))
+    _par.parallel_for(
+        _sums.lumped_blocks, blocks, _sums.BLOCK, mesh.triangles, mesh.areas, read_only(r),
+        mesh.lumped_mass, mesh.boundary_vertex_mask, out, grain=1,
+    )  # fmt: skip
+    if out[:, 1].any():
+        return None
+    return math.sqrt(max(float(out[:, 0].sum()), 0.0))
 
 
 def global_terms(scene, u1, u2, lam, r1, r2) -> dict:

@@ -148,6 +148,11 @@ def test_lumped_norm_matches_the_mass_matrix_and_the_solve_assembles_none():
     rho = np.where(mesh.boundary_vertex_mask, 0.0, r / mesh.lumped_mass)
     ref = np.sqrt(rho @ (terms.mass_matrix(scene) @ rho))
     assert got == pytest.approx(ref, rel=1e-12, abs=0.0)
+    zero = np.zeros(mesh.n_vertices)  # the rho1 column of the global terms' kernel, same bits
+    assert got == np.sqrt(terms._global_blocks(mesh, zero, zero, zero, r, zero)[2])
+    bad = r.copy()
+    bad[7] = np.nan
+    assert terms.lumped_norm(scene, bad) is None  # not finite: the matrix path names nothing
     small = fm.Scene(fm.Mesh.square(64))
     assert terms.lumped_norm(small, np.ones(small.mesh.n_vertices)) is None
     assert inexact._mass(small) is not None
