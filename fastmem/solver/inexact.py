@@ -57,6 +57,7 @@ __all__ = [
     "SKIP_MARGIN",
     "SPILL",
     "SPILL_FRACTION",
+    "SPILL_MIN_TRIANGLES",
     "AdaptiveStep",
     "memory_pressure",
 ]
@@ -70,7 +71,8 @@ SKIP_MARGIN = 1.5
 MAX_SKIP = 4
 
 #: Whether the inexact step spills (:meth:`AdaptiveStep.spill`): ``"auto"`` under memory
-#: pressure (:func:`memory_pressure`), ``True`` always, ``False`` never.  Results are the
+#: pressure (:func:`memory_pressure`) and on large decoupled meshes
+#: (:data:`SPILL_MIN_TRIANGLES`), ``True`` always, ``False`` never.  Results are the
 #: same bit for bit either way; spilling lowers the peak of the flux reconstructions and
 #: costs a rebuild (assembly, products, AMG setups) after every check that does not end
 #: the level (about 6-7 % of the general path's time at n = 512).
@@ -79,6 +81,15 @@ SPILL = "auto"
 #: ``"auto"`` spills when the memory guard's estimate of the solve on the step's mesh
 #: (:func:`fastmem.memory.estimate_memory`) exceeds this fraction of the memory at hand.
 SPILL_FRACTION = 0.5
+
+#: ``"auto"`` also spills on the decoupled path from this many triangles on.  There a flux
+#: check nearly always ends its level (every level of at least 2^18 triangles did in the
+#: default, manufactured and adaptive runs of the benchmarks), so the rebuild is rarely
+#: paid, and the flux then takes memory the process has just freed instead of new memory
+#: (first default solve at n = 1024 on the 2-core VM: median 5.44 -> 4.58 s over 4 fresh
+#: processes each, peak 1.39 -> 1.24 GB; docs/performance.md).  The general path keeps the
+#: memory-pressure rule: its checks often do not end the level.
+SPILL_MIN_TRIANGLES = 1 << 18
 
 
 def memory_pressure(mesh, fraction=None, limit=None) -> bool:
@@ -114,8 +125,10 @@ def _mass(scene):
     return threaded(mass_matrix(scene))
 
 
-def _wants_spill(mesh, limit=None) -> bool:
+def _wants_spill(mesh, limit=None, decoupled=False) -> bool:
     if SPILL == "auto":
+        if decoupled and mesh.n_triangles >= SPILL_MIN_TRIANGLES:
+            return True
         return memory_pressure(mesh, limit=limit)
     return bool(SPILL)
 
@@ -135,7 +148,7 @@ class AdaptiveStep(AMGStep):
         if self.decoupled:  # the share of s in eta_alg steers its CG
             self.mass = _mass(system.scene)
             self.c_f = friedrichs_constant(system.scene.mesh)
-        self.spilling = _wants_spill(system.scene.mesh, options.memory_limit)
+        self.spilling = _wants_spill(system.scene.mesh, options.memory_limit, self.decoupled)
         self.stats["spill"] = self.spilling
 
     def spill(self):
@@ -149,8 +162,9 @@ class AdaptiveStep(AMGStep):
         scene assembles again on their next use.  Called by
         :class:`fastmem.solver.newton.Checks` right before it reconstructs the flux;
         :meth:`restore` rebuilds all of it bit for bit when the level goes on, so only
-        the memory peak and the time change, not a result.  Without memory pressure
-        (:data:`SPILL` ``"auto"``, :func:`memory_pressure`) nothing is freed.
+        the memory peak and the time change, not a result.  With :data:`SPILL`
+        ``"auto"`` nothing is freed on a mesh below :data:`SPILL_MIN_TRIANGLES` (or on
+        the general path) without memory pressure (:func:`memory_pressure`).
         """
         if not self.spilling:
             return

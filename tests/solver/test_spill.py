@@ -6,8 +6,9 @@ reduced matrix and the prolongation), the CGs' right-hand sides, the AMG hierarc
 the consistent mass matrix and the scene's stiffness matrices before each flux
 reconstruction, and ``restore`` rebuilds them when the level goes on.  Only the
 memory peak may change: the results must be bit for bit those of a solve that keeps
-everything.  Spilling happens under memory pressure only (``SPILL = "auto"``,
-:func:`fastmem.solver.inexact.memory_pressure`); the tests force it on or off.
+everything.  With ``SPILL = "auto"`` spilling happens under memory pressure
+(:func:`fastmem.solver.inexact.memory_pressure`) and on decoupled meshes of at least
+``SPILL_MIN_TRIANGLES`` triangles; the tests force it on or off.
 """
 
 import numpy as np
@@ -95,6 +96,21 @@ def test_no_spill_without_memory_pressure(monkeypatch):
     assert adaptive.SPILL == "auto"
     assert not calls
     assert not any(lv["spill"] for lv in result.parameters["solver"]["levels"])
+
+
+def test_auto_spills_on_large_decoupled_meshes_only(monkeypatch):
+    """``SPILL = "auto"``: decoupled levels from ``SPILL_MIN_TRIANGLES`` on, general ones not."""
+    monkeypatch.delenv(fm.memory.MEMORY_LIMIT_ENV, raising=False)
+    monkeypatch.setattr(adaptive, "meminfo_bytes", lambda key: None)  # no memory pressure
+    monkeypatch.setattr(adaptive, "SPILL_MIN_TRIANGLES", 2 * 32 * 32)  # the n = 32 level on
+    assert adaptive.SPILL == "auto"
+    for path, mu, want in (("auto", (1.0, 1.0), True), ("general", (1.0, 2.0), False)):
+        levels = _solve(path, mu, n=32).parameters["solver"]["levels"]
+        big = [lv["spill"] for lv in levels if lv["n_vertices"] >= 33 * 33]
+        small = [lv["spill"] for lv in levels if lv["n_vertices"] < 33 * 33]
+        assert big == [want], (path, levels)
+        assert small
+        assert not any(small)
 
 
 def test_memory_pressure_compares_the_guard_estimate_with_the_memory_at_hand(monkeypatch):
