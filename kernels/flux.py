@@ -392,9 +392,9 @@ def _patch_loads(
     """Write the data ``(g_i^a, lambda_j)_K`` of one patch triangle, contact load included, to gloc.
 
     Triangle t, where the patch vertex has local index i; ``kapj`` is scratch.
-    The general case, out of line: the patch kernels call it only for a
-    glued triangle or a redistributed vertex, and :func:`_plain_loads`
-    otherwise (see there why).
+    The general case: the patch kernel :func:`_reconstruct_chunk` calls it for
+    every triangle, the class members' kernel only for a glued triangle or a
+    redistributed vertex, and :func:`_plain_loads` otherwise (see there why).
     """
     # data (g, lambda_j)
     dot1 = m1 * (gax * du1x + gay * du1y) * area / 3.0
@@ -691,24 +691,15 @@ def _patch_kernel(weighted):
                 else:
                     m1 = mu1[0]
                     m2 = mu2[0]
-                # data (g, lambda_j) with the contact load (the class members' code)
-                if redist_a or (glued and chi_row[t] >= 0):
-                    _patch_loads(
-                        i, t, area, m1, m2, du1x, du1y, du2x, du2y, gax, gay, f1c, f2c, load1,
-                        load2, chi_row, chi_mom, glued, r1a, r2a, lam_a, redist_a, gam, gloc,
-                        kapj,
-                    )  # fmt: skip
-                else:
-                    g00, g01, g10, g11, g20, g21 = _plain_loads(
-                        i, t, area, m1, m2, du1x, du1y, du2x, du2y, gax, gay, f1c, f2c,
-                        load1, load2, r1a, r2a, lam_a,
-                    )  # fmt: skip
-                    gloc[0, 0] = g00
-                    gloc[0, 1] = g01
-                    gloc[1, 0] = g10
-                    gloc[1, 1] = g11
-                    gloc[2, 0] = g20
-                    gloc[2, 1] = g21
+                # data (g, lambda_j) with the contact load (the class members' code); here
+                # out of line, unlike _member_chunk: the factorisations dominate this kernel
+                # (inlining _plain_loads saved 9 % of an estimate without classes at n = 1024)
+                # and every first run compiles it (the inlined copy cost 0.8 s of the cold
+                # `fastmem run`, 7.6 -> 8.4 s)
+                _patch_loads(
+                    i, t, area, m1, m2, du1x, du1y, du2x, du2y, gax, gay, f1c, f2c, load1,
+                    load2, chi_row, chi_mom, glued, r1a, r2a, lam_a, redist_a, gam, gloc, kapj,
+                )  # fmt: skip
                 # bubbles from divergence rows 1, 2:  sigma_b = beta - K sigma_e
                 b00 = div[1, 6]
                 b01 = div[1, 7]
