@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from ..errors import DataError, InputTypeError, ParameterError, checked_keywords
+from ..fem.loaddata import expect_estimates
 from ..fem.quadrature import quadrature_points, triangle_rule
 from ..fem.residual import residuals
 from ..fem.scene import Scene
@@ -150,6 +151,9 @@ def estimate(scene: Scene, u1, u2, lam, r1=None, r2=None) -> Estimate:
     lam[bnd] = 0.0  # lambda_h lives in X_0h: boundary values are ignored
     if (r1 is None) != (r2 is None):
         raise ParameterError("r1 and r2 must be given together (or both left out)")
+    # the flux needs the load moments: a callable load is then evaluated once for
+    # the load vector, the moments and the oscillation (fastmem.fem.loaddata)
+    expect_estimates(scene)
     if r1 is None:
         r1, r2 = residuals(scene, u1, u2, lam)
     else:
