@@ -1,4 +1,12 @@
-"""The one place where kernel compilation flags are set."""
+"""The one place where kernel compilation flags are set.
+
+Numba's cache (``cache=True``) is checked against the modification time of the
+file that defines a kernel only: after editing a ``@jit`` helper that kernels of
+other modules call (e.g. :func:`fastmem.kernels.cut.nonconformity`, called by
+:func:`fastmem.kernels.sums.global_blocks`), touch those modules or delete
+``kernels/__pycache__``, or they keep the old helper's code.  An install copies
+every file anew, so users never meet this.
+"""
 
 import functools
 

@@ -12,6 +12,7 @@ squared norms of the global terms triangle by triangle in the same way.
 import math
 
 from ._jit import jit
+from .cut import nonconformity
 
 __all__ = [
     "BLOCK",
@@ -36,14 +37,14 @@ def _bad(x):
 
 
 @jit
-def _store(out, row, s0, s1, s2, s3, s4, bad):
-    """Write one block's five sums and its count of bad entries to row ``row``."""
+def _store(out, row, s0, s1, s2, s3, s4, s5):
+    """Write six values of one block (sums, or five sums and the count of bad entries)."""
     out[row, 0] = s0
     out[row, 1] = s1
     out[row, 2] = s2
     out[row, 3] = s3
     out[row, 4] = s4
-    out[row, 5] = bad
+    out[row, 5] = s5
 
 
 @jit
@@ -85,7 +86,7 @@ def combine_blocks(lo, hi, block, osc1, osc2, nc, eta_c, f1, f2, out):
 
 
 #: Columns of the rows :func:`global_blocks` writes.
-GLOBAL_SUMS = ("glob1", "glob2", "rho1", "rho2", "lam_minus", "bad")
+GLOBAL_SUMS = ("glob1", "glob2", "rho1", "rho2", "lam_minus", "nc", "bad")
 
 
 @jit
@@ -94,7 +95,9 @@ def _finite(x):
 
 
 @jit
-def global_blocks(lo, hi, block, triangles, areas, u1, u2, lam, r1, r2, b, boundary, out):
+def global_blocks(
+    lo, hi, block, triangles, areas, u1, u2, lam, r1, r2, b, boundary, vertices, mu2, out
+):
     """Partial sums of the squared L2 norms of the global terms, over blocks of triangles.
 
     Row ``t`` of ``out`` for the triangles of blocks ``lo <= t < hi``: the sums of
@@ -102,12 +105,20 @@ def global_blocks(lo, hi, block, triangles, areas, u1, u2, lam, r1, r2, b, bound
     matrix of triangle K) for ``v`` = ``rho1 + lam^-``, ``rho2 - lam^-``, ``rho1``,
     ``rho2``, ``lam^-`` at its three vertices, with ``rho_i = r_i / b`` and
     ``lam^- = max(lam, 0) - lam`` at interior vertices and 0 on the boundary
-    (:func:`fastmem.estimators.terms.global_terms`); then the number of vertex
-    values of ``u1, u2, lam, r1, r2`` met that are not finite.
+    (:func:`fastmem.estimators.terms.global_terms`); then the sum of ``eta_nc^2``
+    (:func:`fastmem.kernels.cut.nonconformity` of the gap ``u1 - u2``, tension
+    ``mu2[k]`` per triangle or ``mu2[0]``), only when ``vertices`` is not empty
+    (else 0); then the number of vertex values of ``u1, u2, lam, r1, r2`` met that
+    are not finite, plus the ``eta_nc`` that are not finite and non-negative.
+    The ``eta_nc`` squares are added in triangle order, as
+    :func:`combine_blocks` adds those of the map.
     """
     m = triangles.shape[0]
+    with_nc = vertices.shape[0] > 0
+    per_triangle = mu2.shape[0] == m and m > 1
     for t in range(lo, hi):
         a0 = a1 = a2 = a3 = a4 = 0.0
+        snc = 0.0
         bad = 0
         for k in range(t * block, min((t + 1) * block, m)):
             s1 = s2 = sl = 0.0  # sums over the vertices of rho1, rho2, lam^-
@@ -145,7 +156,21 @@ def global_blocks(lo, hi, block, triangles, areas, u1, u2, lam, r1, r2, b, bound
             a2 += w * (q2 + s1 * s1)
             a3 += w * (q3 + s2 * s2)
             a4 += w * (q4 + sl * sl)
-        _store(out, t, a0, a1, a2, a3, a4, bad)
+            if with_nc:
+                i0, i1, i2 = triangles[k, 0], triangles[k, 1], triangles[k, 2]
+                g0, g1, g2 = u1[i0] - u2[i0], u1[i1] - u2[i1], u1[i2] - u2[i2]
+                if g0 >= 0.0 and g1 >= 0.0 and g2 >= 0.0:
+                    continue  # eta_nc = 0 exactly (nonconformity's first exit), snc += 0
+                nc, _ = nonconformity(
+                    vertices[i0, 0], vertices[i0, 1], vertices[i1, 0], vertices[i1, 1],
+                    vertices[i2, 0], vertices[i2, 1], g0, g1, g2,
+                    mu2[k] if per_triangle else mu2[0],
+                )  # fmt: skip
+                if _bad(nc):
+                    bad += 1
+                snc += nc * nc
+        _store(out, t, a0, a1, a2, a3, a4, snc)
+        out[t, 6] = bad
 
 
 @jit

@@ -470,7 +470,8 @@ def _precompile_sums() -> None:
     vectors = [read_only(np.zeros(mesh.n_vertices)) for _ in range(5)]
     sums.global_blocks(
         0, 1, sums.BLOCK, mesh.triangles, mesh.areas, *vectors, mesh.lumped_mass,
-        mesh.boundary_vertex_mask, np.empty((1, len(sums.GLOBAL_SUMS))),
+        mesh.boundary_vertex_mask, mesh.vertices, read_only(np.ones(1)),
+        np.empty((1, len(sums.GLOBAL_SUMS))),
     )  # fmt: skip
     sums.lumped_blocks(
         0, 1, sums.BLOCK, mesh.triangles, mesh.areas, vectors[0], mesh.lumped_mass,

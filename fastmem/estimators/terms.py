@@ -78,6 +78,7 @@ from ..kernels import sums as _sums
 from ..linalg.sparse import plain_float64, read_only, threaded
 
 __all__ = [
+    "check_totals",
     "combine",
     "contact_local_terms",
     "friedrichs_constant",
@@ -344,17 +345,7 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     mu2 = float(np.min(scene.mu2))
     squares = _global_blocks(mesh, u1, u2, lam, r1, r2)
     if squares is not None:  # a large mesh: one pass of the kernel threads
-        glob1, glob2, rho1, rho2, lam_minus = (math.sqrt(max(x, 0.0)) for x in squares)
-        return {
-            "eta_glob1": c_f / math.sqrt(mu1) * glob1,
-            "eta_glob2": c_f / math.sqrt(mu2) * glob2,
-            "rho_norm1": rho1,
-            "rho_norm2": rho2,
-            "lam_minus_norm": lam_minus,
-            "C_F": c_f,
-            "mu1": mu1,
-            "mu2": mu2,
-        }
+        return _glob_from_squares(squares[:5], c_f, mu1, mu2)
     _nodal(mesh, u1, "u1")
     _nodal(mesh, u2, "u2")
     lam = _nodal(mesh, lam, "lam")
@@ -386,31 +377,85 @@ def global_terms(scene, u1, u2, lam, r1, r2) -> dict:
     }
 
 
-def _global_blocks(mesh, u1, u2, lam, r1, r2):
+def _glob_from_squares(squares, c_f, mu1, mu2) -> dict:
+    """Return the dict of :func:`global_terms` from its five squared norms."""
+    glob1, glob2, rho1, rho2, lam_minus = (math.sqrt(max(x, 0.0)) for x in squares)
+    return {
+        "eta_glob1": c_f / math.sqrt(mu1) * glob1,
+        "eta_glob2": c_f / math.sqrt(mu2) * glob2,
+        "rho_norm1": rho1,
+        "rho_norm2": rho2,
+        "lam_minus_norm": lam_minus,
+        "C_F": c_f,
+        "mu1": mu1,
+        "mu2": mu2,
+    }
+
+
+def _global_blocks(mesh, u1, u2, lam, r1, r2, mu2=None):
     """Return the five squared norms of :func:`global_terms` from one pass of the threads.
 
-    ``(|rho1 + lam^-|^2, |rho2 - lam^-|^2, |rho1|^2, |rho2|^2, |lam^-|^2)`` summed
+    ``(|rho1 + lam^-|^2, |rho2 - lam^-|^2, |rho1|^2, |rho2|^2, |lam^-|^2, S)`` summed
     triangle by triangle with the element mass matrices
     (:func:`fastmem.kernels.sums.global_blocks`: fixed blocks, so the same for
     every thread count; equal to the mass-matrix products of the NumPy path up to
     round-off), or None on meshes below :data:`BLOCK_SUM_TRIANGLES` triangles, for
     vectors that are not contiguous float64 of one value per vertex, and when a
-    value is not finite (the NumPy path then names it).
+    value is not finite (the NumPy path then names it).  ``S``: with ``mu2`` (the
+    tension of membrane 2, one value or one per triangle) the sum of the squared
+    ``eta_nc`` of :func:`local_terms`, bit for bit the one :func:`combine` forms from
+    its map; without, 0.
     """
     m = mesh.n_triangles
     vectors = (u1, u2, lam, r1, r2)
     if m < BLOCK_SUM_TRIANGLES or not plain_float64(vectors, mesh.n_vertices):
         return None
+    if mu2 is None:  # no eta_nc: an empty vertex array tells the kernel
+        vertices, mu2 = mesh.vertices[:0], np.ones(1)
+    else:
+        vertices = mesh.vertices
+        mu2 = np.ascontiguousarray(np.atleast_1d(np.asarray(mu2, dtype=np.float64)))
     blocks = -(-m // _sums.BLOCK)
     out = np.empty((blocks, len(_sums.GLOBAL_SUMS)))
     _par.parallel_for(
         _sums.global_blocks, blocks, _sums.BLOCK, mesh.triangles, mesh.areas,
-        *(read_only(x) for x in vectors), mesh.lumped_mass, mesh.boundary_vertex_mask, out,
-        grain=1,
+        *(read_only(x) for x in vectors), mesh.lumped_mass, mesh.boundary_vertex_mask,
+        vertices, read_only(mu2), out, grain=1,
     )  # fmt: skip
-    if out[:, 5].any():
+    if out[:, 6].any():
         return None
-    return tuple(float(t) for t in out[:, :5].sum(axis=0))
+    # column by column in block order (NumPy's reduction over the first axis), as combine
+    return tuple(float(t) for t in out[:, :6].sum(axis=0))
+
+
+def check_totals(scene, u1, u2, lam, r1, r2):
+    r"""``(eta_lin, eta_alg, glob)`` of an iterate in one pass of the threads, or None.
+
+    What the solver's frequent checks need: :math:`\eta_{lin}` and
+    :math:`\eta_{alg}` (docs/method.md §6) depend on the global terms and on
+    :math:`\sum_K \eta_{nc,K}^2` only, so no per-triangle map is formed.  One
+    pass of :func:`fastmem.kernels.sums.global_blocks` sums both; the values are
+    bit for bit those of :func:`global_terms`, :func:`local_terms` and
+    :func:`combine` (``glob`` is the dict of :func:`global_terms`).  None where
+    :func:`global_terms` would not take its kernel path (small meshes, vectors that
+    are not contiguous float64, values that are not finite): then use those.
+    """
+    mesh = scene.mesh
+    squares = _global_blocks(mesh, u1, u2, lam, r1, r2, mu2=scene.mu2)
+    if squares is None:
+        return None
+    c_f = friedrichs_constant(mesh)
+    glob = _glob_from_squares(squares[:5], c_f, float(np.min(scene.mu1)), float(np.min(scene.mu2)))
+    eta_lin, eta_alg = _lin_alg(glob, math.sqrt(squares[5]))
+    return eta_lin, eta_alg, glob
+
+
+def _lin_alg(glob, nc_total):
+    """``(eta_lin, eta_alg)`` from the global terms and ``(sum_K eta_nc,K^2)^(1/2)``."""
+    c_f, mu1, mu2 = float(glob["C_F"]), float(glob["mu1"]), float(glob["mu2"])
+    eta_alg = c_f * math.sqrt(glob["rho_norm1"] ** 2 / mu1 + glob["rho_norm2"] ** 2 / mu2)
+    eta_lin = c_f * math.sqrt(1.0 / mu1 + 1.0 / mu2) * glob["lam_minus_norm"] + 2.0 * nc_total
+    return eta_lin, eta_alg
 
 
 _LOCAL_KEYS = ("eta_osc1", "eta_osc2", "eta_nc", "eta_C")
@@ -579,7 +624,7 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
     if missing:
         raise DataError(f"glob lacks {missing}; pass the output of global_terms")
     g1, g2 = float(glob["eta_glob1"]), float(glob["eta_glob2"])
-    c_f, mu1, mu2 = float(glob["C_F"]), float(glob["mu1"]), float(glob["mu2"])
+    c_f = float(glob["C_F"])
     layered = local.get("eta_w1") is not None or local.get("eta_w2") is not None
     sums = None if layered else _block_sums(eta_F1, eta_F2, local)
     if sums is not None:  # one pass in the kernel threads (large meshes)
@@ -626,8 +671,7 @@ def combine(eta_F1, eta_F2, local, glob) -> dict:
         split_won = split < eta
         eta = min(eta, split)
 
-    eta_alg = c_f * math.sqrt(glob["rho_norm1"] ** 2 / mu1 + glob["rho_norm2"] ** 2 / mu2)
-    eta_lin = c_f * math.sqrt(1.0 / mu1 + 1.0 / mu2) * glob["lam_minus_norm"] + 2.0 * nc_total
+    eta_lin, eta_alg = _lin_alg(glob, nc_total)
     eta_disc = math.sqrt(sum_d1 + sum_d2) + math.sqrt(c) + w_total
     slides = math.sqrt(sum_d1 + sum_d2 + c)
 

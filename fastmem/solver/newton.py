@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import CyclingError, NumericalError
 from ..estimators.bound import evaluate
-from ..estimators.terms import combine, global_terms, local_terms
+from ..estimators.terms import check_totals, combine, global_terms, local_terms
 from ..fem.residual import residuals
 from ..kernels import rows as _kr
 from .inexact import AdaptiveStep
@@ -120,7 +120,7 @@ class Last:
     r1: np.ndarray
     r2: np.ndarray
     estimate: object
-    local: dict
+    local: dict | None  # None: the checks formed no map (evaluate() forms them)
     glob: dict
 
 
@@ -158,6 +158,12 @@ class Checks:
         self.before_flux = step.spill if isinstance(step, AdaptiveStep) else None
 
     def _cheap(self, u1, u2, lam, r1, r2):
+        # eta_lin, eta_alg need no flux and no per-triangle map: on large meshes one pass
+        # of sums (the maps, if a flux follows, are formed by evaluate(), local=None)
+        quick = check_totals(self.scene, u1, u2, lam, r1, r2)
+        if quick is not None:
+            eta_lin, eta_alg, glob = quick
+            return eta_lin, eta_alg, None, glob
         # no data oscillation here: it enters eta_disc only (added by evaluate() with the flux)
         local = local_terms(self.scene, u1, u2, lam, oscillation=False)
         glob = global_terms(self.scene, u1, u2, lam, r1, r2)

@@ -161,3 +161,72 @@ def test_lumped_norm_matches_the_mass_matrix_and_the_solve_assembles_none():
     result = fm.solve(fresh, nested=False)
     assert result.converged
     assert "M" not in fresh._cache  # no consistent mass matrix on this mesh
+
+
+def _check_case(rng, mesh, *, ratio=0.3):
+    """An iterate whose gap u1 - u2 is negative on a share ``ratio`` of the vertices."""
+    n = mesh.n_vertices
+    u2 = rng.standard_normal(n)
+    u1 = u2 + np.where(rng.random(n) < ratio, -1.0, 1.0) * rng.random(n)
+    lam, r1, r2 = rng.standard_normal(n), 1e-3 * rng.standard_normal(n), rng.standard_normal(n)
+    return u1, u2, lam, r1, r2
+
+
+def _lin_alg_of_maps(scene, args):
+    """eta_lin, eta_alg as the checks formed them before check_totals: the maps of
+    local_terms and global_terms, through combine with zero flux and oscillation."""
+    loc = terms.local_terms(scene, *args[:3], oscillation=False)
+    glob = terms.global_terms(scene, *args)
+    zero = np.zeros(scene.mesh.n_triangles)
+    totals = terms.combine(zero, zero, {**loc, "eta_osc1": zero, "eta_osc2": zero}, glob)
+    return totals["totals"]["eta_lin"], totals["totals"]["eta_alg"], glob
+
+
+@pytest.mark.parametrize("tension", ["constant", "per-triangle"])
+def test_check_totals_are_the_maps_totals_bit_for_bit(monkeypatch, tension):
+    """One pass of sums gives eta_lin, eta_alg and the global terms with the bits of the
+    maps' path (eta_nc summed in the same blocks and order), on several blocks."""
+    monkeypatch.setattr(terms._sums, "BLOCK", 4096)  # 32 blocks, the last one partial
+    mesh = fm.Mesh.square(260)  # 135,200 triangles: both paths take their kernels
+    rng = np.random.default_rng(6)
+    mu2 = rng.uniform(0.5, 2.0, mesh.n_triangles) if tension == "per-triangle" else 2.5
+    scene = fm.Scene(mesh, mu=(1.3, mu2), f=(-1.0, 1.0), g=0.1)
+    args = _check_case(rng, mesh)
+    got = terms.check_totals(scene, *args)
+    assert got is not None
+    assert got == _lin_alg_of_maps(scene, args)
+    nc = terms.local_terms(scene, *args[:3], oscillation=False)["eta_nc"]
+    assert (nc > 0).mean() > 0.2  # the case has non-conformity to sum
+
+
+def test_check_totals_fall_back_where_the_maps_path_is_needed():
+    """None on small meshes and for a value that is not finite: the checks then take the
+    maps' path, which names the bad field."""
+    small = fm.Scene(fm.Mesh.square(64))
+    args = _check_case(np.random.default_rng(7), small.mesh)
+    assert terms.check_totals(small, *args) is None
+    mesh = fm.Mesh.square(256)
+    scene = fm.Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    args = list(_check_case(np.random.default_rng(8), mesh))
+    assert terms.check_totals(scene, *args) is not None
+    args[1][12345] = np.inf
+    assert terms.check_totals(scene, *args) is None
+    with pytest.raises(DataError, match="u2"):
+        terms.global_terms(scene, *args)
+
+
+def test_nonconformity_is_zero_where_the_gap_is_not_negative():
+    """eta_nc = 0 exactly on triangles where u1 >= u2 (delta = 0 there), also where the
+    gradient of the gap would overflow; elsewhere (mu |grad gap|^2 |{gap < 0}|)^(1/2)."""
+    from fastmem.kernels.cut import nonconformity
+
+    corners = (0.0, 0.0, 1.0, 0.0, 0.0, 1.0)  # area 1/2
+    assert nonconformity(*corners, 1e300, -1e300 + 1e300, 1e300, 4.0) == (0.0, 0.5)
+    assert nonconformity(*corners, 0.0, 3e307, -3e307 + 6e307, 4.0)[0] == 0.0
+    # gap = -x: gradient (-1, 0), negative on all of K but the edge x = 0
+    nc, area = nonconformity(*corners, 0.0, -1.0, 0.0, 4.0)
+    assert area == 0.5
+    assert nc == pytest.approx(np.sqrt(4.0 * 1.0 * 0.5), rel=1e-15)
+    # gap = x - 1/2: negative on {x < 1/2}, area 1/2 - 1/8 = 3/8
+    nc, _ = nonconformity(*corners, -0.5, 0.5, -0.5, 1.0)
+    assert nc == pytest.approx(np.sqrt(3.0 / 8.0), rel=1e-14)

@@ -531,3 +531,31 @@ def test_per_triangle_tensions_get_a_coarse_chain_on_the_generators():
     assert warm.n_newton <= 4 < 10 <= cold.n_newton
     scale = np.abs(cold.u1).max()
     assert np.abs(warm.u1 - cold.u1).max() <= 1e-8 * scale
+
+
+@pytest.mark.parametrize("mu", [(1.0, 1.0), (1.0, 2.0)])
+def test_one_pass_checks_change_no_result(monkeypatch, mu):
+    """On large meshes the checks take eta_lin, eta_alg from one pass of sums
+    (estimators.terms.check_totals) instead of the maps: every history row and the
+    returned bound have the bits of the maps' path."""
+    from fastmem.solver import newton
+
+    scene = fm.Scene(fm.Mesh.square(256), mu=mu, f=(-1.0, 1.0), g=0.1)  # 131,072 triangles
+    real = newton.check_totals
+    calls = []
+
+    def counting(*args):
+        out = real(*args)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(newton, "check_totals", counting)
+    one_pass = fm.solve(scene, nested=False)
+    assert calls
+    assert all(calls)  # every check of the level took the one pass
+    monkeypatch.setattr(newton, "check_totals", lambda *args: None)
+    maps = fm.solve(scene, nested=False)
+    assert one_pass.eta == maps.eta
+    assert set(one_pass.history) == set(maps.history)
+    for col in ("eta_lin", "eta_alg", "eta_disc", "eta", "inner_total", "n_active"):
+        np.testing.assert_array_equal(one_pass.history[col], maps.history[col])
