@@ -26,8 +26,24 @@ try:  # scipy's BSR base class, patched while a hierarchy is set up (_fast_bsr_d
 except ImportError:  # pragma: no cover - another scipy layout: keep its own method
     _bsr_base = None
 from ..kernels import pool as _par
-from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
-from .sparse import ThreadedCSR, _kernel_arrays, as_unsigned, threaded
+from ..kernels.smooth import (
+    active_diagonal_range,
+    cg_direction_range,
+    cg_update_range,
+    cross_block_dominant,
+    csr_matvec_range,
+    gs_hybrid_range,
+    masked_rhs_range,
+)
+from .sparse import (
+    THREADED_ROWS,
+    ThreadedCSR,
+    _kernel_arrays,
+    as_unsigned,
+    plain_float64,
+    read_only,
+    threaded,
+)
 
 __all__ = [
     "AMG_DEFAULTS",
@@ -339,7 +355,7 @@ class HybridGaussSeidel:
 
 
 def precompile() -> None:
-    """Compile (or load) the kernels of :class:`HybridGaussSeidel` and :class:`ThreadedCSR`.
+    """Compile (or load) the kernels of :class:`HybridGaussSeidel`, :class:`ThreadedCSR`, :class:`PCG`.
 
     With the argument types of a solve (uint32 index views; the vector of a
     product read-only, :func:`fastmem.linalg.sparse.read_only`), on a 2 x 2 matrix:
@@ -356,6 +372,12 @@ def precompile() -> None:
     frozen = np.ones(2)
     frozen.setflags(write=False)
     csr_matvec_range(0, 2, indptr, indices, a.data, frozen, x)
+    # the CG's vector updates and the gap system's masking (fastmem.solver.steps)
+    cg_update_range(0, 2, 0.5, frozen, frozen, x, old)
+    cg_direction_range(0, 2, 0.5, frozen, x)
+    active = np.zeros(2, dtype=np.bool_)
+    masked_rhs_range(0, 2, active, frozen, x)
+    active_diagonal_range(0, 2, active, frozen, frozen, x)
 
 
 def _sweeps_read_matrix_at_call(options: dict) -> bool:
@@ -832,14 +854,25 @@ class PCG:
         if pap <= 0.0 or not np.isfinite(pap):
             return self._breakdown()
         alpha = self.rz / pap
-        self.x += alpha * self.p
-        self.r -= alpha * ap
+        n = self.x.shape[0]
+        fused = n >= THREADED_ROWS and plain_float64((self.x, self.r, self.p, ap), n)
+        if fused:  # NumPy's operations in the kernel threads, no temporaries
+            _par.parallel_for(
+                cg_update_range, n, alpha, read_only(self.p), read_only(ap), self.x, self.r
+            )
+        else:
+            self.x += alpha * self.p
+            self.r -= alpha * ap
+        del ap
         self.z = self.m(self.r)
         rz_new = float(self.r @ self.z)
         beta = rz_new / self.rz
         self.rz = rz_new
-        self.p *= beta
-        self.p += self.z
+        if fused and plain_float64((self.z,), n):
+            _par.parallel_for(cg_direction_range, n, beta, read_only(self.z), self.p)
+        else:
+            self.p *= beta
+            self.p += self.z
         self.z = None  # recomputed from r by the next step: not kept between iterations
         self.iterations += 1
         self._fresh = False

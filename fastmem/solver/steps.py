@@ -47,9 +47,18 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..estimators.terms import lumped_norm, mass_matrix
+from ..kernels import pool as _par
+from ..kernels.smooth import active_diagonal_range, masked_rhs_range
 from ..linalg.amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner
 from ..linalg.gmg import NestedChain, NestedMG
-from ..linalg.sparse import THREADED_ROWS, masked_gap, submatrix, threaded
+from ..linalg.sparse import (
+    THREADED_ROWS,
+    masked_gap,
+    plain_float64,
+    read_only,
+    submatrix,
+    threaded,
+)
 from .linear import DecoupledStep
 
 __all__ = [
@@ -337,6 +346,7 @@ class DecoupledCG:
         self.cg_w = None
         self.s_done = False
         self.active = None
+        self._rhs = None  # the masked right-hand side of the gap preconditioner (large)
 
     def start(self, active, u1, u2):
         """Set up the CG of the step with active set ``active``, warm-started at ``(u1, u2)``."""
@@ -416,6 +426,7 @@ class DecoupledCG:
         if self.a_ii is None:
             return
         self.a_ii = self.system.a_ii = self.pre_all.matrix = self.diag = None
+        self._rhs = None
         if self.cg_s is not None:
             self.cg_s.a = None
         if self.cg_w is not None:
@@ -476,8 +487,21 @@ class DecoupledCG:
 
     def _masked(self, r):
         # the hierarchy may belong to an older active set: keep w = 0 on the current one
-        z = self.pre_w(np.where(self.active, 0.0, r))
-        z[self.active] = r[self.active] / self.diag[self.active]
+        n = r.shape[0]
+        if n < THREADED_ROWS or not plain_float64((r, self.diag), n):
+            z = self.pre_w(np.where(self.active, 0.0, r))
+            z[self.active] = r[self.active] / self.diag[self.active]
+            return z
+        # large: the same values from the kernel threads, the masked vector in a buffer
+        # of the step (the cycle reads it during the call only)
+        if self._rhs is None or self._rhs.shape[0] != n:
+            self._rhs = np.empty(n)
+        active, rr = self.active, read_only(r)
+        _par.parallel_for(masked_rhs_range, n, active, rr, self._rhs)
+        z = self.pre_w(self._rhs)
+        if z is self._rhs or not plain_float64((z,), n) or not z.flags.writeable:
+            z = np.array(z, dtype=np.float64)  # never hand out the buffer itself
+        _par.parallel_for(active_diagonal_range, n, active, rr, read_only(self.diag), z)
         return z
 
     def iterate(self, budget, s_share):

@@ -230,3 +230,54 @@ def test_smoothers_with_setup_data_are_not_updated():
     ref = fm.solve(fm.Manufactured().scene(fm.Mesh.square(64)), method="exact")
     assert np.abs(res.u1 - ref.u1).max() <= 1e-9 * np.abs(ref.u1).max()
     assert np.array_equal(res.active, ref.active)
+
+
+def test_vector_kernels_are_numpys_operations():
+    """The CG's fused updates and the gap system's masking give NumPy's bits."""
+    from fastmem.kernels import smooth
+
+    rng = np.random.default_rng(11)
+    n = 1000
+    p, ap, x, r, z, diag = (rng.standard_normal(n) for _ in range(6))
+    diag = np.abs(diag) + 0.1
+    alpha, beta = 0.3711, -1.7
+    x_k, r_k, p_k = x.copy(), r.copy(), p.copy()
+    smooth.cg_update_range(0, n, alpha, p, ap, x_k, r_k)
+    np.testing.assert_array_equal(x_k, x + alpha * p)
+    np.testing.assert_array_equal(r_k, r - alpha * ap)
+    smooth.cg_direction_range(0, n, beta, z, p_k)
+    np.testing.assert_array_equal(p_k, p * beta + z)
+    active = rng.random(n) < 0.4
+    out = np.full(n, np.nan)
+    smooth.masked_rhs_range(0, n, active, r, out)
+    np.testing.assert_array_equal(out, np.where(active, 0.0, r))
+    z_k, z_ref = z.copy(), z.copy()
+    smooth.active_diagonal_range(0, n, active, r, diag, z_k)
+    z_ref[active] = r[active] / diag[active]
+    np.testing.assert_array_equal(z_k, z_ref)
+
+
+def test_cg_with_fused_updates_is_the_numpy_cg(monkeypatch):
+    """From THREADED_ROWS unknowns on, PCG updates its vectors in the kernel threads:
+    every iterate has the bits of the NumPy updates."""
+    a, _, _ = _laplacian(200)  # 39,601 unknowns
+    assert a.shape[0] >= amg.THREADED_ROWS
+    a = threaded(a)
+    b = np.random.default_rng(12).standard_normal(a.shape[0])
+    inv = 1.0 / a.diagonal()
+
+    def run():
+        cg = amg.PCG(a, b, np.zeros_like(b), lambda r: inv * r)
+        xs = []
+        for _ in range(6):
+            assert cg.step()
+            xs.append(cg.x.copy())
+        return xs, cg.r.copy(), cg.p.copy()
+
+    fused = run()
+    monkeypatch.setattr(amg, "THREADED_ROWS", 1 << 60)
+    plain = run()
+    for got, want in zip(
+        fused[0] + [fused[1], fused[2]], plain[0] + [plain[1], plain[2]], strict=True
+    ):
+        np.testing.assert_array_equal(got, want)

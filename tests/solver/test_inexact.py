@@ -559,3 +559,20 @@ def test_one_pass_checks_change_no_result(monkeypatch, mu):
     assert set(one_pass.history) == set(maps.history)
     for col in ("eta_lin", "eta_alg", "eta_disc", "eta", "inner_total", "n_active"):
         np.testing.assert_array_equal(one_pass.history[col], maps.history[col])
+
+
+def test_vector_kernels_change_no_result(monkeypatch):
+    """The kernel-thread vector updates of the CGs and of the gap preconditioner
+    (meshes of THREADED_ROWS interior vertices and more) leave every history row and
+    the bound as NumPy's updates give them."""
+    from fastmem.linalg import amg
+    from fastmem.solver import steps as st
+
+    scene = fm.Scene(fm.Mesh.square(256), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    fused = fm.solve(scene, nested=False)
+    monkeypatch.setattr(amg, "THREADED_ROWS", 1 << 60)
+    monkeypatch.setattr(st, "THREADED_ROWS", 1 << 60)
+    plain = fm.solve(scene, nested=False)
+    assert fused.eta == plain.eta
+    for col in ("eta_lin", "eta_alg", "eta_disc", "res_norm", "inner_total", "n_active"):
+        np.testing.assert_array_equal(fused.history[col], plain.history[col])
