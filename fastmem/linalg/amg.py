@@ -355,7 +355,7 @@ class HybridGaussSeidel:
 
 
 def precompile() -> None:
-    """Compile (or load) the kernels of :class:`HybridGaussSeidel`, :class:`ThreadedCSR`, :class:`PCG`.
+    """Compile (or load) the kernels of the hybrid sweep, the threaded products and the CG.
 
     With the argument types of a solve (uint32 index views; the vector of a
     product read-only, :func:`fastmem.linalg.sparse.read_only`), on a 2 x 2 matrix:
