@@ -4,8 +4,11 @@ Issue 33's many-core check.  The default scene (docs/method.md §8; with
 ``--scenes`` also the manufactured one, :class:`fastmem.problems.Manufactured`)
 on the structured n x n square, in one process:
 
-1. ``fm.warm_up(large=True)`` (the kernels compiled or loaded), the mesh built, the
-   Poisson unit measured (:func:`bench._common.poisson_unit`, all threads);
+1. ``fm.warm_up(large=True)`` (the kernels compiled or loaded), the mesh built, on
+   the first size one solve of the first scene at the most threads (the solve a
+   user meets: ``user_first_s``, before anything else has touched the memory it
+   needs), then the Poisson unit measured (:func:`bench._common.poisson_unit`, all
+   threads);
 2. for each thread count, from the most to the fewest (``fm.set_threads``),
    and each multigrid (``multigrid="geometric"``, the nested-hierarchy
    multigrid, which the default ``"auto"`` takes on these levels, and
@@ -22,8 +25,10 @@ on the structured n x n square, in one process:
    smoothers' and the CG's kernel; ``product_ms``, ``product_speedup``): the
    memory bandwidth of the machine bounds what a memory-bound solve gains.
 
-The first solve of the process (the most threads, geometric) is the one a
-user meets after the warm-up; it is recorded as such.  A per-thread count row
+The row with ``user_first_s`` is the solve a user meets after the warm-up
+(``user_first_pu`` against the unit measured right after it); the rows'
+``first_solve_in_process`` marks the first timed solve after the unit, which
+runs on memory the unit has already faulted in.  A per-thread count row
 has the seconds of every level, its Newton steps, CG iterations, multigrid
 setups and flux seconds, so that what does not scale can be named.  With
 ``--profile`` the solve at the most threads is profiled once more
@@ -199,9 +204,32 @@ def run(
     for n in sizes:
         mesh = fm.Mesh.square(n)
         fm.set_threads(numba=max(threads))
+        user = None
+        if n == sizes[0]:
+            # the solve a user meets: before the unit, whose own solves would have
+            # faulted in the memory this one touches first (3 s more at n = 2048)
+            t0 = time.perf_counter()
+            fm.solve(_scene(mesh, scenes[0]), method="inexact", multigrid=multigrids[0])
+            user = {
+                "n": n,
+                "vertices": mesh.n_vertices,
+                "threads": max(threads),
+                "multigrid": multigrids[0],
+                "scene": scenes[0],
+                "user_first_s": time.perf_counter() - t0,
+                "peak_rss_mb": peak_rss_mb(),
+            }
         # with --repeat, the unit is the median of three (it varied by 10 % between
         # processes on the 2-core VM; one timed run would carry that into every PU)
         pu = poisson_unit(mesh, repeat=3 if repeat > 1 else 1)
+        if user is not None:
+            user["poisson_s"] = pu["seconds"]
+            user["user_first_pu"] = user["user_first_s"] / pu["seconds"]
+            rows.append(user)
+            progress(
+                f"n={n}: the process's first solve ({scenes[0]}, before the unit) "
+                f"{user['user_first_s']:.2f} s ({user['user_first_pu']:.2f} PU)"
+            )
         progress(f"n={n}: {mesh.n_vertices} vertices, Poisson unit {pu['seconds']:.2f} s")
         product_ms = _product_ceiling(mesh, threads)
         progress(
@@ -241,12 +269,11 @@ def run(
                     f"({row['solve_pu']:.2f} PU), estimate {row['estimate_s']:.2f} s, "
                     f"eta {row['eta']:.4e}, Newton {row['n_newton']}"
                 )
-        _repeat_rows([r for r in rows if r["n"] == n], mesh, repeat, deadline, t_start)
+        timed = [r for r in rows if r["n"] == n and "solve_s" in r]
+        _repeat_rows(timed, mesh, repeat, deadline, t_start)
         for which, mg in [(w, m) for w in scenes for m in multigrids]:
             base = {
-                r["threads"]: r
-                for r in rows
-                if r["n"] == n and r["multigrid"] == mg and r.get("scene") == which
+                r["threads"]: r for r in timed if r["multigrid"] == mg and r.get("scene") == which
             }
             if 1 in base:
                 for r in base.values():

@@ -307,6 +307,9 @@ def _manycore(d, v):
     first = [r for r in rows if r.get("first_solve_in_process")]
     if first:
         v["manycore_first_solve_pu"] = f"{first[0]['solve_pu']:.2f}"
+    user = [r for r in d["rows"] if "user_first_pu" in r]
+    if user:  # the solve a user meets: before the unit, on memory not yet touched
+        v["manycore_user_first_solve_pu"] = f"{user[0]['user_first_pu']:.2f}"
     if "first_touch_ms_per_mib" in d:  # the machine's cost of fresh memory (bench._common)
         v["manycore_first_touch_ms_per_mib"] = f"{d['first_touch_ms_per_mib']:.2f}"
 

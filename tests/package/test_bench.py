@@ -207,6 +207,11 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
     for r in solved:
         by_case.setdefault((r["multigrid"], r["scene"]), set()).add(r["eta"])
     assert all(len(etas) == 1 for etas in by_case.values()), by_case
+    # the solve a user meets, timed before the unit, in a row of its own
+    user = [r for r in rows if "user_first_s" in r]
+    assert len(user) == 1
+    assert user[0]["user_first_pu"] == user[0]["user_first_s"] / user[0]["poisson_s"]
+    assert "solve_s" not in user[0]
 
 
 def test_report_and_figures(quick, results):
