@@ -393,7 +393,7 @@ def _glob_from_squares(squares, c_f, mu1, mu2) -> dict:
 
 
 def _global_blocks(mesh, u1, u2, lam, r1, r2, mu2=None):
-    """Return the five squared norms of :func:`global_terms` from one pass of the threads.
+    """Return the squared norms of :func:`global_terms` (and S) from one pass of the threads.
 
     ``(|rho1 + lam^-|^2, |rho2 - lam^-|^2, |rho1|^2, |rho2|^2, |lam^-|^2, S)`` summed
     triangle by triangle with the element mass matrices
