@@ -266,6 +266,15 @@ def test_cg_with_fused_updates_is_the_numpy_cg(monkeypatch):
     b = np.random.default_rng(12).standard_normal(a.shape[0])
     inv = 1.0 / a.diagonal()
 
+    calls = []
+    real = amg.cg_update_range
+
+    def counting(*args):
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(amg, "cg_update_range", counting)
+
     def run():
         cg = amg.PCG(a, b, np.zeros_like(b), lambda r: inv * r)
         xs = []
@@ -275,8 +284,11 @@ def test_cg_with_fused_updates_is_the_numpy_cg(monkeypatch):
         return xs, cg.r.copy(), cg.p.copy()
 
     fused = run()
+    assert calls  # the kernel path was taken
+    calls.clear()
     monkeypatch.setattr(amg, "THREADED_ROWS", 1 << 60)
     plain = run()
+    assert not calls  # and here the NumPy path
     for got, want in zip(
         fused[0] + [fused[1], fused[2]], plain[0] + [plain[1], plain[2]], strict=True
     ):

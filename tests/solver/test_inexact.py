@@ -568,11 +568,24 @@ def test_vector_kernels_change_no_result(monkeypatch):
     from fastmem.linalg import amg
     from fastmem.solver import steps as st
 
+    calls = {"cg": 0, "mask": 0}
+    for mod, name, key in ((amg, "cg_update_range", "cg"), (st, "masked_rhs_range", "mask")):
+        real = getattr(mod, name)
+
+        def counting(*args, _real=real, _key=key):
+            calls[_key] += 1
+            return _real(*args)
+
+        monkeypatch.setattr(mod, name, counting)
     scene = fm.Scene(fm.Mesh.square(256), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
     fused = fm.solve(scene, nested=False)
+    assert calls["cg"] > 0  # both kernel paths were taken
+    assert calls["mask"] > 0
     monkeypatch.setattr(amg, "THREADED_ROWS", 1 << 60)
     monkeypatch.setattr(st, "THREADED_ROWS", 1 << 60)
+    calls.update(cg=0, mask=0)
     plain = fm.solve(scene, nested=False)
+    assert calls == {"cg": 0, "mask": 0}
     assert fused.eta == plain.eta
     for col in ("eta_lin", "eta_alg", "eta_disc", "res_norm", "inner_total", "n_active"):
         np.testing.assert_array_equal(fused.history[col], plain.history[col])
