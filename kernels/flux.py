@@ -83,7 +83,13 @@ from . import pool as _par
 from ._jit import jit
 from .rt1 import _flip_pattern, rt1_dofs_to_coefficients, rt1_local_xy
 
-__all__ = ["color_vertices", "flux_estimators", "patch_classes", "reconstruct_colored"]
+__all__ = [
+    "color_vertices",
+    "flux_estimators",
+    "patch_classes",
+    "reconstruct_colored",
+    "sweep_order",
+]
 
 #: floats per patch triangle in the class storage (:func:`_class_store`)
 _CF = 48
@@ -116,6 +122,49 @@ def color_vertices(n, indptr, indices):
         if c + 1 > n_colors:
             n_colors = c + 1
     return colors, n_colors
+
+
+@jit
+def sweep_order(order, color_ptr, patch_ptr, patch_triangles, n_triangles):
+    """``order`` with the vertices of each colour sorted by the smallest triangle of their patch.
+
+    Within a colour class the patches write disjoint rows, so their order does not
+    change a bit of the result; sorted so, the patches of a colour sweep the
+    triangle arrays (and the flux rows they write) from first to last.  A mesh
+    made by refinement numbers its new triangles after the old ones, so a patch
+    in vertex order jumps across them.  Within a colour no two patches share a
+    triangle.  Two counting sorts (by that triangle, then stably by colour),
+    O(N + M).
+    """
+    n = order.shape[0]
+    n_colors = color_ptr.shape[0] - 1
+    color = np.empty(n, dtype=np.int8)
+    for c in range(n_colors):
+        for k in range(color_ptr[c], color_ptr[c + 1]):
+            color[order[k]] = c
+    first = np.empty(n, dtype=np.int64)
+    start = np.zeros(n_triangles + 2, dtype=np.int32)  # (a vertex without triangles: last)
+    for a in range(n):
+        t = n_triangles
+        for k in range(patch_ptr[a], patch_ptr[a + 1]):
+            t = min(t, np.int64(patch_triangles[k]))
+        first[a] = t
+        start[t + 1] += 1
+    for t in range(n_triangles + 1):
+        start[t + 1] += start[t]
+    by_tri = np.empty(n, dtype=np.int64)
+    for a in range(n):
+        t = first[a]
+        by_tri[start[t]] = a
+        start[t] += 1
+    slot = color_ptr[:-1].copy()
+    out = np.empty_like(order)
+    for k in range(n):
+        a = by_tri[k]
+        c = color[a]
+        out[slot[c]] = a
+        slot[c] += 1
+    return out
 
 
 @jit

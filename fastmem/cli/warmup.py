@@ -485,10 +485,15 @@ def _precompile_classes() -> None:
     :func:`fastmem.estimators.flux.patch_classes` searches them only on such meshes,
     which the tiny solves do not reach: here the search runs on a 16 x 16 square (a
     few classes cover its vertices), set on the mesh, and one reconstruction with
-    them compiles the class kernels with the types a solve passes.
+    them compiles the class kernels with the types a solve passes; the sweep order
+    of the patches on such meshes (:func:`fastmem.kernels.flux.sweep_order`) too.
     """
     mesh = Mesh.square(16)
     mesh._cache["patch_classes"] = find_patch_classes(mesh)
+    order = np.arange(mesh.n_vertices)  # the sweep order of such meshes (one colour here)
+    _kflux.sweep_order(
+        order, np.array([0, order.size]), mesh.patch_ptr, mesh.patch_triangles, mesh.n_triangles
+    )
     zero = np.zeros(mesh.n_vertices)
     reconstruct(Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), zero, zero, zero)
 

@@ -135,3 +135,29 @@ def test_no_search_where_few_patches_recur():
     # x -> x / 3 + x^3 / 7: no two patches keep equal edge vectors, bit for bit
     v = mesh.vertices / 3.0 + mesh.vertices**3 / 7.0
     assert _classes(fm.Mesh(v, mesh.triangles)) is None
+
+
+def test_sweep_order_changes_no_bit(monkeypatch):
+    """Patches of a colour by their smallest triangle: a reordering within colours, same bits."""
+    coarse = fm.Scene(fm.Mesh.lshape(8), mu=(1, 1), f=(-1, -1), g=0.1)
+    mesh = fm.solve(coarse, tol=3e-2).mesh
+    scene = fm.Scene(mesh, mu=(1, 1), f=(-1, -1), g=0.1)
+    res = fm.solve(scene)
+    triple = (res.u1, res.u2, res.lam)
+    mesh._cache.pop("vertex_colors", None)
+    monkeypatch.setattr(flux, "SWEEP_MIN_VERTICES", 0)
+    swept, ptr = flux._coloring(mesh)
+    got = flux.reconstruct(scene, *triple).coef
+    mesh._cache.pop("vertex_colors")
+    monkeypatch.setattr(flux, "SWEEP_MIN_VERTICES", mesh.n_vertices + 1)
+    plain, ptr2 = flux._coloring(mesh)
+    full = flux.reconstruct(scene, *triple).coef
+    assert np.array_equal(ptr, ptr2)
+    # NumPy's version of the order: each colour's vertices sorted by their smallest triangle
+    first = np.minimum.reduceat(mesh.patch_triangles, mesh.patch_ptr[:-1])
+    assert not np.array_equal(swept, plain)  # a refined mesh: the orders differ
+    for c in range(ptr.size - 1):
+        seg = plain[ptr[c] : ptr[c + 1]]
+        assert np.array_equal(swept[ptr[c] : ptr[c + 1]], seg[np.argsort(first[seg])])
+    assert np.array_equal(got, full)
+    assert np.abs(full).max() > 0.0
