@@ -48,7 +48,7 @@ from numba.core.dispatcher import Dispatcher
 
 from .. import kernels
 from ..errors import ParameterError, checked_keywords
-from ..estimators.flux import find_patch_classes, reconstruct
+from ..estimators.flux import band_plan, find_patch_classes, flux_norms, reconstruct
 from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
 from ..kernels import assembly, flux, rows, sums, topology
@@ -486,7 +486,8 @@ def _precompile_classes() -> None:
     which the tiny solves do not reach: here the search runs on a 16 x 16 square (a
     few classes cover its vertices), set on the mesh, and one reconstruction with
     them compiles the class kernels with the types a solve passes; the sweep order
-    of the patches on such meshes (:func:`fastmem.kernels.flux.sweep_order`) too.
+    of the patches on such meshes (:func:`fastmem.kernels.flux.sweep_order`) and the
+    banded flux estimators (:func:`fastmem.estimators.flux.flux_norms`) too.
     """
     mesh = Mesh.square(16)
     mesh._cache["patch_classes"] = find_patch_classes(mesh)
@@ -495,7 +496,10 @@ def _precompile_classes() -> None:
         order, np.array([0, order.size]), mesh.patch_ptr, mesh.patch_triangles, mesh.n_triangles
     )
     zero = np.zeros(mesh.n_vertices)
-    reconstruct(Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1), zero, zero, zero)
+    scene = Scene(mesh, mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    reconstruct(scene, zero, zero, zero)
+    # the banded flux estimators of such meshes: bands of 128 triangles here
+    flux_norms(scene, zero, zero, zero, plan=band_plan(mesh, band=128))
 
 
 def _precompile_cycles(large: bool, general: bool, adaptive: bool = False) -> None:

@@ -20,7 +20,7 @@ from ..fem.scene import Scene
 from ..io.result import Estimate, check_nodal, check_triple
 from ..kernels import flux as _kf
 from . import layers as _layers
-from .flux import Fluxes, _mu_array, cross_point_correction, reconstruct
+from .flux import Fluxes, _mu_array, cross_point_correction, flux_norms, reconstruct
 from .layers import layer_load, layer_terms
 from .terms import (
     _oscillation,
@@ -170,16 +170,23 @@ def evaluate(scene, u1, u2, lam, r1, r2, local=None, glob=None) -> Estimate:
     caller already has them for this triple (the adaptive solver does).
     """
     t0 = time.perf_counter()
-    # unequal tensions: the contact load is the glued pressure on closed triangles
-    # (proof in fastmem.estimators.flux.glued_contact_load); it changes c and the oscillation
-    fluxes = reconstruct(scene, u1, u2, lam, r1, r2, redistribute="glued")
-    contact = fluxes.contact
-    # divergence-free correction at checkerboard-like vertices (issue 16): same
-    # divergence, still H(div), eta_F no larger (proof in cross_point_correction)
-    fluxes = cross_point_correction(scene, u1, u2, fluxes)
-    t1 = time.perf_counter()
-    eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
-    del fluxes  # the RT1 coefficients (256 B/vertex) are not needed below
+    # constant tensions on a mesh with a band plan: eta_F band by band, the fluxes not stored
+    banded = flux_norms(scene, u1, u2, lam, r1, r2)
+    if banded is not None:
+        eta_f1, eta_f2, contact = banded
+        t1 = time.perf_counter()
+    else:
+        # unequal tensions: the contact load is the glued pressure on closed triangles
+        # (proof in fastmem.estimators.flux.glued_contact_load); it changes c and the
+        # oscillation
+        fluxes = reconstruct(scene, u1, u2, lam, r1, r2, redistribute="glued")
+        contact = fluxes.contact
+        # divergence-free correction at checkerboard-like vertices (issue 16): same
+        # divergence, still H(div), eta_F no larger (proof in cross_point_correction)
+        fluxes = cross_point_correction(scene, u1, u2, fluxes)
+        t1 = time.perf_counter()
+        eta_f1, eta_f2 = flux_terms(scene, u1, u2, fluxes)
+        del fluxes  # the RT1 coefficients (256 B/vertex) are not needed below
     if local is None:
         local = local_terms(scene, u1, u2, lam)
     elif local.get("eta_osc1") is None or local.get("eta_osc2") is None:

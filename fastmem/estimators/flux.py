@@ -394,6 +394,18 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=N
     ``div sigma_2h = Pi f_2 - chi - rho_2`` with ``chi`` P1 on each triangle and
     ``(chi, psi_a) = B_a lam_a`` at every interior vertex.
     """
+    order, color_ptr = _coloring(scene.mesh)
+    contact, inputs, extra = _patch_inputs(scene, u1, u2, lam, r1, r2, redistribute, layer)
+    coef = _kf.reconstruct_colored(order, color_ptr, *inputs, **extra)
+    return Fluxes(mesh=scene.mesh, coef=coef, contact=contact)
+
+
+def _patch_inputs(scene, u1, u2, lam, r1, r2, redistribute, layer):
+    """Return the patch kernels' inputs for :func:`reconstruct`: ``(contact, inputs, extra)``.
+
+    ``inputs``: the positional arguments of :func:`fastmem.kernels.flux.reconstruct_colored`
+    after the colouring; ``extra``: its keywords.
+    """
     mesh = scene.mesh
     u1, u2, lam = (np.ascontiguousarray(v, dtype=np.float64) for v in (u1, u2, lam))
     if r1 is None or r2 is None:
@@ -413,7 +425,6 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=N
         f = scene.f1 if i == 1 else scene.f2
         consts.append(float(f) if mom is None else 0.0)
         moments.append(np.zeros((1, 3, 3)) if mom is None else mom)
-    order, color_ptr = _coloring(mesh)
     contact = None
     chi_row = chi_mom = None
     if redistribute == "glued":
@@ -448,9 +459,7 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=N
                 full = np.array(moments[i], dtype=np.float64)
             full[rows] += add
             moments[i], consts[i] = full, 0.0
-    coef = _kf.reconstruct_colored(
-        order,
-        color_ptr,
+    inputs = (
         mesh.vertices,
         mesh.triangles,
         mesh.diameters,
@@ -475,11 +484,79 @@ def reconstruct(scene, u1, u2, lam, r1=None, r2=None, redistribute=True, layer=N
         np.zeros(1) if gamma is None else gamma,
         int(np.diff(mesh.patch_ptr).max()),
         numba.get_num_threads(),
-        chi_row,
-        chi_mom,
-        classes=patch_classes(mesh, scene.mu1, scene.mu2),
     )
-    return Fluxes(mesh=mesh, coef=coef, contact=contact)
+    extra = {"chi_row": chi_row, "chi_mom": chi_mom}
+    extra["classes"] = patch_classes(mesh, scene.mu1, scene.mu2)
+    return contact, inputs, extra
+
+
+#: the banded estimators (:func:`flux_norms`) need at least this many bands; below, the
+#: fluxes are stored (the ring would hold a large part of the mesh anyway)
+BAND_MIN = 4
+#: ... and meshes of this many vertices (the large meshes' kernels, compiled by
+#: ``fastmem.warm_up(large=True)``; below, the stored fluxes take at most 26 MB)
+BAND_MIN_VERTICES = 100_000
+
+
+def band_plan(mesh, band=None):
+    """Return the band plan of :func:`fastmem.kernels.flux.band_plan` for ``mesh``, or None.
+
+    Bands of :data:`~fastmem.kernels.flux.BAND_TRIANGLES` triangles (more with many
+    threads: :data:`~fastmem.kernels.flux.BAND_TRIANGLES_PER_THREAD` per thread).  None
+    when there would be fewer than :data:`BAND_MIN` bands, or when the ring (48 doubles
+    per live triangle) would take more than half the memory of the stored fluxes (16
+    doubles per triangle): meshes whose patches span far apart triangle numbers, as
+    refined meshes do (new triangles are numbered last).
+    None also below :data:`BAND_MIN_VERTICES`.
+    Cached on the mesh per thread count.  With ``band`` (triangles per band): that
+    plan, uncached and whatever its ring (tests, warm-up).
+    """
+    if band is not None:
+        order, color_ptr = _coloring(mesh)
+        m = mesh.n_triangles
+        return _kf.band_plan(order, color_ptr, mesh.patch_ptr, mesh.patch_triangles, m, band)
+    threads = numba.get_num_threads()
+    cache = mesh._cache.setdefault("flux_bands", {})
+    if threads not in cache:
+        m = mesh.n_triangles
+        band = max(_kf.BAND_TRIANGLES, _kf.BAND_TRIANGLES_PER_THREAD * threads)
+        plan = None
+        if mesh.n_vertices >= BAND_MIN_VERTICES and m >= BAND_MIN * band:
+            order, color_ptr = _coloring(mesh)
+            plan = _kf.band_plan(order, color_ptr, mesh.patch_ptr, mesh.patch_triangles, m, band)
+            if 48 * plan[3] > 8 * m:
+                plan = None
+        cache[threads] = plan
+    return cache[threads]
+
+
+def flux_norms(scene, u1, u2, lam, r1=None, r2=None, plan=None):
+    """Return ``(eta_F1, eta_F2, contact)`` of the glued fluxes, or None (then store them).
+
+    The per-triangle flux estimators of :func:`fastmem.estimators.bound.flux_terms`
+    for ``reconstruct(scene, u1, u2, lam, r1, r2, redistribute="glued")``, bit for
+    bit, computed band by band without storing the fluxes
+    (:func:`fastmem.kernels.flux.flux_norms_banded`): 48 doubles per triangle of one
+    band instead of 16 per triangle of the mesh (at n = 1024 the fluxes are 268 MB,
+    new memory at every evaluation).  For constant tensions only (per-triangle
+    tensions may need the cross-point correction, which changes the fluxes); None
+    there and on meshes without a band plan (:func:`band_plan`).  ``plan``: a plan
+    to use instead of the mesh's (tests).
+    """
+    mesh = scene.mesh
+    if np.ndim(scene.mu1) or np.ndim(scene.mu2):
+        return None
+    if plan is None:
+        plan = band_plan(mesh)
+        if plan is None:
+            return None
+    contact, inputs, extra = _patch_inputs(scene, u1, u2, lam, r1, r2, "glued", None)
+    bary, w = triangle_rule(5)
+    window = mesh._cache.pop("flux_window", None)  # (one user at a time)
+    rule = np.ascontiguousarray(bary), np.ascontiguousarray(w)
+    norms, window = _kf.flux_norms_banded(plan, *rule, *inputs, window=window, **extra)
+    mesh._cache["flux_window"] = window  # all zero again: reused by the next evaluation
+    return norms[0], norms[1], contact
 
 
 # --- divergence-free correction at non-quasi-monotone vertices (issue 16) -------------
