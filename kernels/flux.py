@@ -84,6 +84,7 @@ from ._jit import jit
 from .rt1 import _flip_pattern, rt1_dofs_to_coefficients, rt1_local_xy
 
 __all__ = [
+    "classes_compiled",
     "color_vertices",
     "flux_estimators",
     "patch_classes",
@@ -1722,6 +1723,16 @@ def patch_classes(geo, max_nt, n_threads):
     cint = np.zeros((reps.size, 2 + 7 * int(max_nt)), dtype=np.int64)
     cflt = np.empty(int(size.sum()))
     return cls, reps, cint, cflt, coff
+
+
+def classes_compiled() -> bool:
+    """Tell whether the patch classes' kernels are compiled (or loaded) in this process.
+
+    Then classes cost no compilation: :func:`fastmem.estimators.flux.patch_classes`
+    uses them on smaller meshes too.
+    """
+    kernels = (_patch_hash_range, _group_hashes, _class_keys, _verify_range, _class_fill)
+    return all(k.signatures for k in (*kernels, _member_chunk))
 
 
 #: fewest patches (triangles) per thread: below, a colour class (the final pass)

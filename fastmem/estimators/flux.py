@@ -149,6 +149,13 @@ def _coloring(mesh):
 #: second and the classes save about half of it, while their kernels cost a first run
 #: 10-20 s of compilation (an adaptive test reaching 34k vertices: 36 s cold instead of 15)
 PATCH_CLASS_MIN_VERTICES = 100_000
+#: ... and from this many vertices on when their kernels are already in the process
+#: (``fastmem.warm_up(large=True)``, or an earlier flux on a large mesh): then they cost
+#: no compilation.  Adaptive L-shape, f = (-1, -1), alternating in one process after
+#: ``warm_up(adaptive=True, large=True)``, medians of 5 with 100,000 and with 5,000: at
+#: the eta of uniform n = 512 0.65 -> 0.53 s, n = 1024 1.76 -> 1.59 s, n = 2048
+#: 3.49 -> 3.18 s (the same meshes and bits)
+PATCH_CLASS_WARM_MIN_VERTICES = 5_000
 
 
 def patch_arrays(mesh) -> tuple:
@@ -175,17 +182,20 @@ def find_patch_classes(mesh):
 def patch_classes(mesh, mu1, mu2):
     """Return the mesh's patch classes for a reconstruction with tensions mu1, mu2, or None.
 
-    Only constant tensions share factorisations between patches, and only
-    meshes of :data:`PATCH_CLASS_MIN_VERTICES` and more are searched; the
-    classes (and the factors stored in them on first use) are cached on the
-    mesh.
+    Only constant tensions share factorisations between patches, and only meshes of
+    :data:`PATCH_CLASS_MIN_VERTICES` and more are searched (of
+    :data:`PATCH_CLASS_WARM_MIN_VERTICES` and more once the class kernels are in the
+    process); the classes (and the factors stored in them on first use) are cached on
+    the mesh.  The result has the same bits with or without classes.
     """
     if np.ndim(mu1) or np.ndim(mu2):
         return None
     cache = mesh._cache
     if "patch_classes" in cache:  # (fastmem.warm_up sets them on a small mesh)
         return cache["patch_classes"]
-    if mesh.n_vertices < PATCH_CLASS_MIN_VERTICES:
+    if mesh.n_vertices < PATCH_CLASS_MIN_VERTICES and (
+        mesh.n_vertices < PATCH_CLASS_WARM_MIN_VERTICES or not _kf.classes_compiled()
+    ):
         return None
     if "patch_classes" not in cache:
         cache["patch_classes"] = find_patch_classes(mesh)

@@ -161,3 +161,22 @@ def test_sweep_order_changes_no_bit(monkeypatch):
         assert np.array_equal(swept[ptr[c] : ptr[c + 1]], seg[np.argsort(first[seg])])
     assert np.array_equal(got, full)
     assert np.abs(full).max() > 0.0
+
+
+def test_smaller_meshes_use_classes_once_their_kernels_are_loaded(monkeypatch):
+    mesh = fm.Mesh.square(80)  # 6561 vertices: between the two thresholds
+    assert flux.PATCH_CLASS_WARM_MIN_VERTICES <= mesh.n_vertices < flux.PATCH_CLASS_MIN_VERTICES
+    monkeypatch.setattr(kf, "classes_compiled", lambda: False)
+    assert flux.patch_classes(mesh, 1.0, 1.0) is None
+    assert "patch_classes" not in mesh._cache
+    monkeypatch.undo()
+    _classes(fm.Mesh.square(8))  # the search's kernels, then a reconstruction with classes
+    scene = fm.Scene(fm.Mesh.square(16), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    scene.mesh._cache["patch_classes"] = _classes(scene.mesh)
+    zero = np.zeros(scene.mesh.n_vertices)
+    flux.reconstruct(scene, zero, zero, zero)
+    assert kf.classes_compiled()
+    assert flux.patch_classes(mesh, 1.0, 1.0) is not None
+    small = fm.Mesh.square(16)
+    assert small.n_vertices < flux.PATCH_CLASS_WARM_MIN_VERTICES
+    assert flux.patch_classes(small, 1.0, 1.0) is None
