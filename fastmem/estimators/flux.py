@@ -531,13 +531,33 @@ def band_plan(mesh, band=None):
         m = mesh.n_triangles
         band = max(_kf.BAND_TRIANGLES, _kf.BAND_TRIANGLES_PER_THREAD * threads)
         plan = None
-        if mesh.n_vertices >= BAND_MIN_VERTICES and m >= BAND_MIN * band:
+        if (
+            mesh.n_vertices >= BAND_MIN_VERTICES
+            and m >= BAND_MIN * band
+            and _sampled_span(mesh) <= m // 6
+        ):
             order, color_ptr = _coloring(mesh)
             plan = _kf.band_plan(order, color_ptr, mesh.patch_ptr, mesh.patch_triangles, m, band)
             if 48 * plan[3] > 8 * m:
                 plan = None
         cache[threads] = plan
     return cache[threads]
+
+
+def _sampled_span(mesh, samples=4096) -> int:
+    """Return the largest ``max - min`` triangle number of a patch, over a strided sample.
+
+    A lower bound of the ring a band plan needs (:func:`band_plan`): on a refined mesh,
+    where old vertices have new triangles, it is of the order of the mesh and the plan
+    is not made (nor its kernel compiled).  NumPy, O(samples).
+    """
+    ptr, tri = mesh.patch_ptr, mesh.patch_triangles
+    a = np.arange(0, mesh.n_vertices, max(1, mesh.n_vertices // samples))
+    lens = ptr[a + 1] - ptr[a]
+    offsets = np.cumsum(lens) - lens
+    idx = np.repeat(ptr[a] - offsets, lens) + np.arange(int(lens.sum()))
+    vals = tri[idx]
+    return int((np.maximum.reduceat(vals, offsets) - np.minimum.reduceat(vals, offsets)).max())
 
 
 def flux_norms(scene, u1, u2, lam, r1=None, r2=None, plan=None):

@@ -123,6 +123,14 @@ def test_refined_mesh_has_no_plan_but_a_forced_one_agrees(monkeypatch):
     assert flux.flux_norms(scene, *_noisy_triple(scene)) is None
     square = fm.Mesh.square(24)
     assert flux.band_plan(square) is not None  # numbered in rows: a ring of a few bands
+    # the sampled patch spans that skip the plan: at most the largest span, exact when
+    # every vertex is sampled; above a sixth of the mesh on the refined one
+    for m in (mesh, square):
+        full = np.maximum.reduceat(m.patch_triangles, m.patch_ptr[:-1])
+        full = (full - np.minimum.reduceat(m.patch_triangles, m.patch_ptr[:-1])).max()
+        assert flux._sampled_span(m, samples=50) <= full == flux._sampled_span(m, 10**9)
+    assert flux._sampled_span(mesh) > mesh.n_triangles // 6
+    assert flux._sampled_span(square) <= 3 * 24  # two rows of triangles
     triple = _noisy_triple(scene, seed=2)
     (ref1, ref2), _ = _stored(scene, triple)
     got1, got2, _ = flux.flux_norms(scene, *triple, plan=flux.band_plan(mesh, band=64))
