@@ -53,6 +53,7 @@ SLOW = {
     # a fresh process: warm_up(adaptive=True), then a solve to a tolerance past 65,536
     # triangles (fast siblings: the helper's parts and refine.precompile's specialisations)
     "cli/test_coldstart.py::test_adaptive_warm_up_covers_the_loop": 6.0,
+    "cli/test_coldstart.py::test_large_warm_up_covers_the_banded_flux": 6.0,
     # a fresh process: warm_up(large=True), then a 66k-vertex solve (about 20 s cold)
     "linalg/test_gmg.py::test_warm_up_compiles_the_nested_multigrid": 2.6,
     # these two offset the default run's share of issue 33's tests (about 10 s): the

@@ -201,6 +201,19 @@ def test_adaptive_warm_up_covers_the_loop():
     assert compiled_after("fm.warm_up('inexact', adaptive=True)", work) == []
 
 
+def test_large_warm_up_covers_the_banded_flux():
+    """After fm.warm_up(large=True), in a fresh process, a solve on a mesh of 100,000
+    vertices and more (patch classes, sweep order, the banded flux estimators) compiles
+    nothing: the warm-up calls them with the types a solve passes."""
+    work = (
+        "from fastmem.estimators import flux\n"
+        "mesh = fm.Mesh.square(320)\n"
+        "r = fm.solve(fm.Scene(mesh, mu=(1, 1), f=(-1, 1), g=0.1))\n"
+        "assert flux.band_plan(mesh) is not None and 'flux_window' in mesh._cache"
+    )
+    assert compiled_after("fm.warm_up('inexact', large=True)", work) == []
+
+
 @pytest.mark.parametrize(
     ("large", "general", "cycles", "nested"),
     [(False, False, 0, 0), (False, True, 1, 0), (True, False, 1, 1)],
