@@ -117,14 +117,11 @@ class Fluxes:
 SWEEP_MIN_VERTICES = 100_000
 
 
-def _coloring(mesh):
-    """Return ``(order, color_ptr)``: the vertices by colour, each colour in sweep order.
+def _colors(mesh):
+    """Return ``(order, color_ptr)``: the vertices by colour, in vertex order within each.
 
     A greedy colouring of the vertex graph (no two vertices of one colour share a
-    triangle).  On meshes of :data:`SWEEP_MIN_VERTICES` and more the vertices of a
-    colour follow the smallest triangle of their patch
-    (:func:`fastmem.kernels.flux.sweep_order`: the same bits as any other order).
-    Cached on the mesh.
+    triangle).  Cached on the mesh.
     """
     cache = mesh._cache
     if "vertex_colors" not in cache:
@@ -135,13 +132,27 @@ def _coloring(mesh):
         order = np.argsort(colors, kind="stable")
         ptr = np.zeros(n_colors + 1, dtype=np.int64)
         np.cumsum(np.bincount(colors, minlength=n_colors), out=ptr[1:])
-        del colors
-        if mesh.n_vertices >= SWEEP_MIN_VERTICES:
-            order = _kf.sweep_order(
-                order, ptr, mesh.patch_ptr, mesh.patch_triangles, mesh.n_triangles
-            )
         cache["vertex_colors"] = (order, ptr)
     return cache["vertex_colors"]
+
+
+def _coloring(mesh):
+    """Return ``(order, color_ptr)`` of :func:`_colors`, each colour in sweep order.
+
+    On meshes of :data:`SWEEP_MIN_VERTICES` and more the vertices of a colour
+    follow the smallest triangle of their patch
+    (:func:`fastmem.kernels.flux.sweep_order`: the same bits as any other order).
+    Made when the fluxes are stored (the banded estimators order their bands
+    themselves).  Cached on the mesh.
+    """
+    order, ptr = _colors(mesh)
+    if mesh.n_vertices < SWEEP_MIN_VERTICES:
+        return order, ptr
+    cache = mesh._cache
+    if "vertex_sweep" not in cache:
+        args = (mesh.patch_ptr, mesh.patch_triangles, mesh.n_triangles)
+        cache["vertex_sweep"] = _kf.sweep_order(order, ptr, *args)
+    return cache["vertex_sweep"], ptr
 
 
 #: meshes from this many vertices on look for patch classes (reused patch factorisations,
@@ -522,7 +533,7 @@ def band_plan(mesh, band=None):
     plan, uncached and whatever its ring (tests, warm-up).
     """
     if band is not None:
-        order, color_ptr = _coloring(mesh)
+        order, color_ptr = _colors(mesh)
         m = mesh.n_triangles
         return _kf.band_plan(order, color_ptr, mesh.patch_ptr, mesh.patch_triangles, m, band)
     threads = numba.get_num_threads()
@@ -536,7 +547,7 @@ def band_plan(mesh, band=None):
             and m >= BAND_MIN * band
             and _sampled_span(mesh) <= m // 6
         ):
-            order, color_ptr = _coloring(mesh)
+            order, color_ptr = _colors(mesh)
             plan = _kf.band_plan(order, color_ptr, mesh.patch_ptr, mesh.patch_triangles, m, band)
             if 48 * plan[3] > 8 * m:
                 plan = None

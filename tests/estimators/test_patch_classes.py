@@ -144,11 +144,9 @@ def test_sweep_order_changes_no_bit(monkeypatch):
     scene = fm.Scene(mesh, mu=(1, 1), f=(-1, -1), g=0.1)
     res = fm.solve(scene)
     triple = (res.u1, res.u2, res.lam)
-    mesh._cache.pop("vertex_colors", None)
     monkeypatch.setattr(flux, "SWEEP_MIN_VERTICES", 0)
     swept, ptr = flux._coloring(mesh)
     got = flux.reconstruct(scene, *triple).coef
-    mesh._cache.pop("vertex_colors")
     monkeypatch.setattr(flux, "SWEEP_MIN_VERTICES", mesh.n_vertices + 1)
     plain, ptr2 = flux._coloring(mesh)
     full = flux.reconstruct(scene, *triple).coef
