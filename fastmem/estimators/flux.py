@@ -592,12 +592,24 @@ def flux_norms(scene, u1, u2, lam, r1=None, r2=None, plan=None):
         if plan is None:
             return None
     contact, inputs, extra = _patch_inputs(scene, u1, u2, lam, r1, r2, "glued", None)
-    bary, w = triangle_rule(5)
-    window = mesh._cache.pop("flux_window", None)  # (one user at a time)
-    rule = np.ascontiguousarray(bary), np.ascontiguousarray(w)
-    norms, window = _kf.flux_norms_banded(plan, *rule, *inputs, window=window, **extra)
-    mesh._cache["flux_window"] = window  # all zero again: reused by the next evaluation
+    norms = banded_norms(mesh, plan, inputs, extra)
     return norms[0], norms[1], contact
+
+
+def banded_norms(mesh, plan, inputs, extra) -> np.ndarray:
+    """Run :func:`fastmem.kernels.flux.flux_norms_banded` with the mesh's ring; norms (2, M).
+
+    ``inputs``, ``extra``: the arguments of :func:`fastmem.kernels.flux.reconstruct_colored`
+    after its colouring, and its keywords; the rule of :func:`~fastmem.estimators.bound.flux_terms`.
+    The ring is taken from the mesh's cache while in use (a concurrent evaluation
+    makes its own) and put back, all zero again, for the next evaluation.
+    """
+    bary, w = triangle_rule(5)
+    rule = np.ascontiguousarray(bary), np.ascontiguousarray(w)
+    window = mesh._cache.pop("flux_window", None)
+    norms, window = _kf.flux_norms_banded(plan, *rule, *inputs, window=window, **extra)
+    mesh._cache["flux_window"] = window
+    return norms
 
 
 # --- divergence-free correction at non-quasi-monotone vertices (issue 16) -------------

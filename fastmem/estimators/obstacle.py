@@ -38,7 +38,7 @@ from ..kernels import flux as _kf
 from ..kernels import obstacle as _kob
 from ..kernels import pool as _par
 from ..linalg.sparse import threaded
-from .flux import _coloring, _mu_array, patch_classes
+from .flux import _coloring, _mu_array, band_plan, banded_norms, patch_classes
 from .terms import friedrichs_constant, mass_matrix
 
 __all__ = ["ObstacleEstimate", "cheap_terms", "estimate", "residual", "split_multiplier"]
@@ -210,40 +210,23 @@ def flux_terms(problem, u, lam_signed, rho, shaped=None) -> np.ndarray:
     mom = integrals(problem, 1, moments=True)["moments"]
     const = float(problem.f) if mom is None else 0.0
     mom = np.zeros((1, 3, 3)) if mom is None else mom
-    order, color_ptr = _coloring(mesh)
     mu = _mu_array(problem.mu)
     zero = np.zeros(mesh.n_vertices)
-    coef = _kf.reconstruct_colored(
-        order,
-        color_ptr,
-        mesh.vertices,
-        mesh.triangles,
-        mesh.diameters,
-        mesh.triangle_edges,
-        mesh.edge_triangles,
-        bnd,
-        mesh.patch_ptr,
-        mesh.patch_triangles,
-        mesh.patch_local,
-        u,
-        zero,
-        lam_i,
-        np.ascontiguousarray(rho),
-        -lam_all,
-        mu,
-        mu,
-        const,
-        0.0,
-        mom,
-        np.zeros((1, 3, 3)),
-        np.zeros(1, dtype=np.bool_),
-        np.zeros(1),
-        int(np.diff(mesh.patch_ptr).max()),
-        numba.get_num_threads(),
-        chi_row,
-        chi_mom,
-        classes=patch_classes(mesh, problem.mu, problem.mu),
-    )
+    inputs = (
+        mesh.vertices, mesh.triangles, mesh.diameters, mesh.triangle_edges,
+        mesh.edge_triangles, bnd, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local,
+        u, zero, lam_i, np.ascontiguousarray(rho), -lam_all, mu, mu, const, 0.0, mom,
+        np.zeros((1, 3, 3)), np.zeros(1, dtype=np.bool_), np.zeros(1),
+        int(np.diff(mesh.patch_ptr).max()), numba.get_num_threads(),
+    )  # fmt: skip
+    extra = {"chi_row": chi_row, "chi_mom": chi_mom}
+    extra["classes"] = patch_classes(mesh, problem.mu, problem.mu)
+    # constant tension on a mesh numbered in rows: band by band, the flux not stored
+    plan = band_plan(mesh) if np.ndim(problem.mu) == 0 else None
+    if plan is not None:
+        return banded_norms(mesh, plan, inputs, extra)[0]
+    order, color_ptr = _coloring(mesh)
+    coef = _kf.reconstruct_colored(order, color_ptr, *inputs, **extra)
     bary, w = triangle_rule(5)
     out = _kf.flux_estimators(
         mesh.vertices,

@@ -167,3 +167,27 @@ def test_estimate_with_bands_equals_estimate_without(monkeypatch):
         assert with_bands.totals[key] == stored.totals[key], key
     for key, value in stored.maps.items():
         assert np.array_equal(with_bands.maps[key], value), key
+
+
+@pytest.mark.parametrize("which", ["ball", "twosided"])
+def test_obstacle_flux_terms_bit_for_bit(monkeypatch, which):
+    """The obstacle family's eta_F (one membrane, the second a zero problem)."""
+    import fastmem.estimators.obstacle as obstacle
+    from fastmem.problems import obstacles
+
+    problem = getattr(obstacles, which)(32)
+    mesh = problem.mesh
+    result = fm.solve(problem)
+    rng = np.random.default_rng(4)
+    u = result.u.copy()
+    inner = mesh.interior_vertices
+    u[inner] += 1e-3 * rng.standard_normal(inner.size)
+    lam = np.where(mesh.boundary_vertex_mask, 0.0, rng.standard_normal(mesh.n_vertices))
+    rho = np.where(mesh.boundary_vertex_mask, 0.0, rng.standard_normal(mesh.n_vertices))
+    monkeypatch.setattr(obstacle, "band_plan", lambda m: None)
+    stored = obstacle.flux_terms(problem, u, lam, rho)
+    monkeypatch.setattr(obstacle, "band_plan", lambda m: flux.band_plan(m, band=64))
+    banded = obstacle.flux_terms(problem, u, lam, rho)
+    assert np.array_equal(banded, stored)
+    assert stored.max() > 0.0
+    assert not mesh._cache["flux_window"].any()
