@@ -2116,8 +2116,9 @@ def band_plan(order, color_ptr, patch_ptr, patch_triangles, n_triangles, band):
     Returns ``(seq, seg, lows, ring)``: the vertices in that order, the start of each
     (band, colour) segment of ``seq`` (``seg[b * C + c]``, C colours, B bands), the
     bounds ``lows`` (B + 1) of the triangles completed by each band, and the ring: the
-    most triangles alive at once (written and not yet complete), so that ``t % ring``
-    names distinct rows for them.  Also ``color`` (int8, per vertex).  O(N + M).
+    length of the longest interval of triangle numbers alive at once (written and not
+    yet finished), so that ``t % ring`` names distinct rows for them.  Also ``color``
+    (int8, per vertex).  O(N + M).
     """
     n = order.shape[0]
     n_colors = color_ptr.shape[0] - 1

@@ -110,6 +110,24 @@ def test_callable_loads_and_thread_counts():
         numba.set_num_threads(threads)
 
 
+def test_parallel_pieces_give_the_same_bits(monkeypatch):
+    """Grains of 1: every colour segment and every band's final pass in many pieces."""
+    monkeypatch.setattr(kf, "PATCH_GRAIN", 1)
+    monkeypatch.setattr(kf, "TRIANGLE_GRAIN", 1)
+    scene = fm.Scene(fm.Mesh.lshape(16), mu=(1.0, 2.0), f=(-1.0, 1.0), g=0.1)
+    triple = _noisy_triple(scene, seed=5)
+    (ref1, ref2), _ = _stored(scene, triple)
+    threads = numba.get_num_threads()
+    try:
+        for t in sorted({1, 2, threads}):
+            numba.set_num_threads(min(t, numba.config.NUMBA_NUM_THREADS))
+            got1, got2, _ = flux.flux_norms(scene, *triple, plan=flux.band_plan(scene.mesh, 37))
+            assert np.array_equal(got1, ref1)
+            assert np.array_equal(got2, ref2)
+    finally:
+        numba.set_num_threads(threads)
+
+
 def test_refined_mesh_has_no_plan_but_a_forced_one_agrees(monkeypatch):
     """Refined meshes number new triangles last: the ring would be most of the mesh."""
     coarse = fm.Scene(fm.Mesh.lshape(8), mu=(1, 1), f=(-1, -1), g=0.1)
