@@ -126,6 +126,34 @@ def color_vertices(n, indptr, indices):
 
 
 @jit
+def _vertex_colors(order, color_ptr):
+    """Return the colour (int8) of each vertex from the colour classes ``order[color_ptr[c]:]``."""
+    color = np.empty(order.shape[0], dtype=np.int8)
+    for c in range(color_ptr.shape[0] - 1):
+        for k in range(color_ptr[c], color_ptr[c + 1]):
+            color[order[k]] = c
+    return color
+
+
+@jit
+def _patch_spans(patch_ptr, patch_triangles, n_triangles):
+    """Return the smallest and largest triangle of each vertex patch (n_triangles, -1: none)."""
+    n = patch_ptr.shape[0] - 1
+    first = np.empty(n, dtype=np.int64)
+    last = np.empty(n, dtype=np.int64)
+    for a in range(n):
+        lo = n_triangles
+        hi = -1
+        for k in range(patch_ptr[a], patch_ptr[a + 1]):
+            t = np.int64(patch_triangles[k])
+            lo = min(lo, t)
+            hi = max(hi, t)
+        first[a] = lo
+        last[a] = hi
+    return first, last
+
+
+@jit
 def _by_first_triangle(first, n_triangles):
     """Return the vertices sorted by ``first`` (values 0..n_triangles), stably (counting sort)."""
     n = first.shape[0]
@@ -155,17 +183,8 @@ def sweep_order(order, color_ptr, patch_ptr, patch_triangles, n_triangles):
     O(N + M).
     """
     n = order.shape[0]
-    n_colors = color_ptr.shape[0] - 1
-    color = np.empty(n, dtype=np.int8)
-    for c in range(n_colors):
-        for k in range(color_ptr[c], color_ptr[c + 1]):
-            color[order[k]] = c
-    first = np.empty(n, dtype=np.int64)
-    for a in range(n):
-        t = n_triangles  # (a vertex without triangles: last)
-        for k in range(patch_ptr[a], patch_ptr[a + 1]):
-            t = min(t, np.int64(patch_triangles[k]))
-        first[a] = t
+    color = _vertex_colors(order, color_ptr)
+    first, _ = _patch_spans(patch_ptr, patch_triangles, n_triangles)
     by_tri = _by_first_triangle(first, n_triangles)
     slot = color_ptr[:-1].copy()
     out = np.empty_like(order)
@@ -1849,7 +1868,7 @@ def precompile(part: str) -> None:
 
 
 def _patch_runner(order, inputs, chi_row, chi_mom, classes):
-    """Prepare the patch kernels (arguments of :func:`reconstruct_colored`); return ``run``.
+    """Prepare the patch kernels (arguments of :func:`reconstruct_colored`); return ``run, args``.
 
     ``inputs``: the positional arguments of :func:`reconstruct_colored` after its
     colouring (``vertices`` ... ``n_threads``).
@@ -1857,7 +1876,8 @@ def _patch_runner(order, inputs, chi_row, chi_mom, classes):
     ``run(out, ring, slots, lo, hi)`` solves the patches of the vertices
     ``order[lo:hi]`` (all of one colour) in parallel and adds their local dof
     values into ``out`` (rows as the patch kernel's ``ring`` and ``slots`` say).
-    The class storage is filled here on its first use.
+    The class storage is filled here on its first use.  ``args``: the kernels' arguments
+    before ``out`` (the arrays made writable once, for the caller's kernels too).
     """
     (
         vertices, triangles, diameters, tri_edges, edge_tris, boundary, patch_ptr,
@@ -1915,7 +1935,7 @@ def _patch_runner(order, inputs, chi_row, chi_mom, classes):
             chunks = _par.ranges(hi - lo, threads, PATCH_GRAIN)
             _par.run_ranges(patches, [(lo + a, lo + b) for a, b in chunks])
 
-    return run
+    return run, args
 
 
 def reconstruct_colored(
@@ -2009,7 +2029,7 @@ def reconstruct_colored(
         patch_triangles, patch_local, u1, u2, lam, rho1, rho2, mu1, mu2, f1c, f2c, load1,
         load2, redist, gamma, max_nt, threads,
     )  # fmt: skip
-    run = _patch_runner(order, inputs, chi_row, chi_mom, classes)
+    run, _ = _patch_runner(order, inputs, chi_row, chi_mom, classes)
     for c in range(color_ptr.shape[0] - 1):
         run(out, 0, 1, int(color_ptr[c]), int(color_ptr[c + 1]))
 
@@ -2123,22 +2143,12 @@ def band_plan(order, color_ptr, patch_ptr, patch_triangles, n_triangles, band):
     n = order.shape[0]
     n_colors = color_ptr.shape[0] - 1
     n_bands = max(1, (n_triangles + band - 1) // band)
-    color = np.empty(n, dtype=np.int8)
-    for c in range(n_colors):
-        for k in range(color_ptr[c], color_ptr[c + 1]):
-            color[order[k]] = c
-    first = np.empty(n, dtype=np.int64)
-    top = np.zeros(n_bands, dtype=np.int64)  # the largest triangle a band's patches write
+    color = _vertex_colors(order, color_ptr)
+    first, last = _patch_spans(patch_ptr, patch_triangles, n_triangles)
+    top = np.full(n_bands, -1, dtype=np.int64)  # the largest triangle a band's patches write
     for a in range(n):
-        lo = n_triangles
-        hi = -1
-        for k in range(patch_ptr[a], patch_ptr[a + 1]):
-            t = np.int64(patch_triangles[k])
-            lo = min(lo, t)
-            hi = max(hi, t)
-        first[a] = lo
-        b = min(lo // band, n_bands - 1)
-        top[b] = max(top[b], hi)
+        b = min(first[a] // band, n_bands - 1)
+        top[b] = max(top[b], last[a])
     # counting sort by the smallest triangle, then stably by (band, colour)
     by_tri = _by_first_triangle(first, n_triangles)
     seg = np.zeros(n_bands * n_colors + 1, dtype=np.int64)
@@ -2246,15 +2256,14 @@ def flux_norms_banded(
     """
     seq, seg, lows, ring, color = plan
     vertices, triangles, diameters = inputs[:3]
-    u1, u2, mu1, mu2 = inputs[9], inputs[10], inputs[14], inputs[15]
     m = triangles.shape[0]
     threads = max(1, int(inputs[-1]))
     n_bands = lows.shape[0] - 1
     n_colors = (seg.shape[0] - 1) // n_bands
     if window is None or window.shape != (2, 3 * ring, 8):
         window = np.zeros((2, 3 * ring, 8))
-    run = _patch_runner(seq, inputs, chi_row, chi_mom, classes)
-    u1, u2, mu1, mu2 = (_writable(a) for a in (u1, u2, mu1, mu2))
+    run, args = _patch_runner(seq, inputs, chi_row, chi_mom, classes)
+    u1, u2, mu1, mu2 = args[9], args[10], args[14], args[15]  # (made writable there)
     norms = np.empty((2, m))
     finish = functools.partial(
         _band_finish, vertices, triangles, diameters, color, window, int(ring), u1, u2, mu1,

@@ -71,6 +71,15 @@ def test_plan_against_its_definition(band):
     assert np.all(np.diff(lows) >= 0)
     assert lows[0] == 0
     assert lows[-1] == mesh.n_triangles
+    # the ring by simulation, not by its formula: during band b the triangles written
+    # by the patches of bands <= b and not finished before b have distinct slots
+    written = np.zeros(mesh.n_triangles, dtype=bool)
+    for b in range(lows.size - 1):
+        for a in np.flatnonzero(vband == b):
+            written[mesh.patch_triangles[mesh.patch_ptr[a] : mesh.patch_ptr[a + 1]]] = True
+        live = np.flatnonzero(written & (np.arange(mesh.n_triangles) >= lows[b]))
+        slots = live % ring
+        assert np.unique(slots).size == slots.size, b
 
 
 @pytest.mark.parametrize("classes", [False, True])
