@@ -36,12 +36,19 @@ setups and flux seconds, so that what does not scale can be named.  With
 
 ``--deadline`` (seconds from the start) skips what would not finish: a row
 is started only while its predicted time, scaled from the rows already
-done, fits.  ``--large N`` then solves one larger mesh once at the most
-threads, with peak memory per vertex.
+done, fits.  ``--adaptive N`` adds the adaptive loop on the L-shape
+(f = (-1, -1), g = 0.1, from ``Mesh.lshape(8)``) to the bound uniform
+refinement reaches at n = N (one uniform solve at the most threads sets the
+tolerance), timed at every thread count, ``--repeat`` rounds alternating the
+order, with its T(1)/T(k) and the final mesh (rows with ``adaptive_s``; the
+same final mesh and η at every thread count, or ``eta_mismatch``).
+``--large N`` then solves one larger mesh once at the most threads, with
+peak memory per vertex.
 
     python -m bench.manycore [--quick] [--sizes 2048] [--threads 16 8 4 2 1]
                              [--scenes default manufactured]
     python -m bench.manycore --sizes 2048 --threads 16 8 4 2 1 --deadline 420 --profile
+    python -m bench.manycore --sizes 1024 --threads 2 1 --repeat 3 --adaptive 2048
 """
 
 import cProfile
@@ -192,15 +199,87 @@ def _product_ceiling(mesh, threads, products=40):
     return out
 
 
+def _adaptive_scene(fm, n):
+    return fm.Scene(fm.Mesh.lshape(n), mu=(1.0, 1.0), f=(-1.0, -1.0), g=0.1)
+
+
+def _adaptive_rows(n, threads, repeat, deadline, t_start):
+    """The adaptive L-shape loop to the bound of uniform n, at every thread count (docstring)."""
+    import statistics
+
+    import fastmem as fm
+
+    fm.set_threads(numba=max(threads))
+    t0 = time.perf_counter()
+    uniform = fm.solve(_adaptive_scene(fm, n))
+    uniform_s = time.perf_counter() - t0
+    tol = float(uniform.eta) * (1.0 + 1e-6)
+    del uniform
+    progress(f"adaptive: tolerance {tol:.4e} (uniform n={n}: {uniform_s:.2f} s)")
+    runs = {t: [] for t in threads}
+    finals = {}
+    order = sorted(threads, reverse=True)
+    for rnd in range(max(1, repeat)):
+        for t in order if rnd % 2 == 0 else order[::-1]:
+            done = [v for ts in runs.values() for v in ts]
+            guess = max(done) * max(threads) / t if done else uniform_s
+            if deadline and time.perf_counter() - t_start + guess > deadline:
+                progress(f"adaptive threads={t}: skipped (deadline)")
+                continue
+            fm.set_threads(numba=t)
+            t0 = time.perf_counter()
+            r = fm.solve(_adaptive_scene(fm, 8), tol=tol)
+            runs[t].append(time.perf_counter() - t0)
+            finals.setdefault(t, set()).add((r.mesh.n_vertices, float(r.eta)))
+            meshes = len(r.adaptivity["n_vertices"])
+            progress(
+                f"adaptive threads={t:2d}: {runs[t][-1]:.2f} s, {meshes} meshes, "
+                f"{r.mesh.n_vertices} vertices, eta {r.eta:.4e}"
+            )
+    rows = []
+    for t in threads:
+        if not runs[t]:
+            continue
+        (vertices, eta), *more = sorted(finals[t])
+        row = {
+            "adaptive_n": n,
+            "threads": t,
+            "tol": tol,
+            "uniform_s": uniform_s,
+            "adaptive_s": runs[t][0],
+            "adaptive_all_s": runs[t],
+            "adaptive_median_s": statistics.median(runs[t]),
+            "final_vertices": vertices,
+            "eta": eta,
+        }
+        if more or any(f != finals[t] for f in finals.values()):
+            row["eta_mismatch"] = sorted(set().union(*finals.values()))
+        rows.append(row)
+    base = {r["threads"]: r for r in rows}
+    if 1 in base:
+        for r in rows:
+            r["adaptive_speedup_median"] = base[1]["adaptive_median_s"] / r["adaptive_median_s"]
+    return rows
+
+
 def run(
-    sizes, threads, multigrids, deadline, profile, large, t_start, scenes=("default",), repeat=1
+    sizes,
+    threads,
+    multigrids,
+    deadline,
+    profile,
+    large,
+    t_start,
+    scenes=("default",),
+    repeat=1,
+    adaptive=None,
 ):
     import numba
 
     import fastmem as fm
 
     rows = []
-    fm.warm_up(large=True)
+    fm.warm_up(large=True, adaptive=bool(adaptive))
     for n in sizes:
         mesh = fm.Mesh.square(n)
         fm.set_threads(numba=max(threads))
@@ -296,6 +375,8 @@ def run(
                 }
             )
         del mesh
+    if adaptive:
+        rows += _adaptive_rows(adaptive, threads, repeat, deadline, t_start)
     if large:
         fm.set_threads(numba=max(threads))
         if deadline:
@@ -339,6 +420,9 @@ def main(argv=None):
     p.add_argument("--deadline", type=float, default=None, help="seconds; later rows skipped")
     p.add_argument("--profile", action="store_true", help="cProfile one solve at the most threads")
     p.add_argument("--large", type=int, default=None, help="one larger n at the most threads")
+    p.add_argument(
+        "--adaptive", type=int, default=None, help="adaptive L-shape to the eta of uniform n"
+    )
     args = parse(p, argv)
     sizes = args.sizes or (QUICK_SIZES if args.quick else FULL_SIZES)
     most = numba.config.NUMBA_NUM_THREADS
@@ -354,6 +438,7 @@ def main(argv=None):
             "scenes": list(args.scenes),
             "deadline": args.deadline,
             "large": args.large,
+            "adaptive": args.adaptive,
             "quick": args.quick,
             "numba_num_threads": most,
             "schedule": "one process; thread counts from the most to the fewest; per count "
@@ -371,6 +456,7 @@ def main(argv=None):
             t_start,
             tuple(args.scenes),
             args.repeat,
+            args.adaptive,
         ),
     }
     finish("manycore", payload, args.quick)

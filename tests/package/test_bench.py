@@ -192,8 +192,9 @@ def test_threads_results_identical(quick):
 
 def test_manycore_repeats_alternate_and_agree(tmp_path):
     """--repeat 2: every row has its two solves, medians, the product ceiling, and the
-    same eta in every solve (the bits do not depend on the thread count)."""
-    res = _run(["bench.manycore", "--quick", "--repeat", "2"], tmp_path)
+    same eta in every solve (the bits do not depend on the thread count); with
+    --adaptive, the adaptive loop's rows likewise (one final mesh, its speed-ups)."""
+    res = _run(["bench.manycore", "--quick", "--repeat", "2", "--adaptive", "32"], tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     rows = json.loads((tmp_path / "manycore_quick.json").read_text())["rows"]
     solved = [r for r in rows if "solve_s" in r]
@@ -212,6 +213,16 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
     assert len(user) == 1
     assert user[0]["user_first_pu"] == user[0]["user_first_s"] / user[0]["poisson_s"]
     assert "solve_s" not in user[0]
+    adaptive = [r for r in rows if "adaptive_s" in r]
+    assert {r["threads"] for r in adaptive} == {r["threads"] for r in solved}
+    for r in adaptive:
+        assert len(r["adaptive_all_s"]) == 2, r
+        assert "eta_mismatch" not in r, r
+        assert r["eta"] <= r["tol"], r
+        assert "solve_s" not in r
+    assert len({(r["final_vertices"], r["eta"]) for r in adaptive}) == 1, adaptive
+    one = next(r for r in adaptive if r["threads"] == 1)
+    assert one["adaptive_speedup_median"] == 1.0
 
 
 def test_report_and_figures(quick, results):
@@ -246,7 +257,8 @@ def test_contact_solve_only_inexact_and_its_report_table(tmp_path):
     }
     assert {r["scene"] for r in d["rows"]} == {"default", "manufactured"}
     for r in d["rows"]:
-        assert r["first_poisson_units"] > 0 and r["poisson_units"] > 0
+        assert r["first_poisson_units"] > 0
+        assert r["poisson_units"] > 0
         assert "max_abs_diff_u_vs_reference" not in r  # nothing to compare with
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
