@@ -23,6 +23,9 @@ SLOW = {
     "estimators/test_patch_classes.py": 16.3,
     "obstacle/test_reference_problems.py::test_warm_up_of_an_obstacle_covers_its_solve": 0.5,
     "package/test_newuser.py::test_warm_up_counts_kernels": 13.7,
+    # 2026-12-03: whole solves at one and two threads, bit for bit, on meshes that take
+    # every threaded path (the kernel tests of the default run check each kernel so)
+    "solver/test_thread_count.py": 8.4,
     # 2026-12-02, once the suite's time included its kernel warm-up (about 5 min in CI):
     # two of the four checkerboard effectivity rows (the other two stay), one of the two
     # small-angle Piola cases ([stretched] stays), the default-scene example (the README's
