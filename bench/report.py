@@ -53,6 +53,7 @@ BENCHMARKS = (
     "peers",
     "twophase",
     "manycore",
+    "critical_path",
 )
 
 

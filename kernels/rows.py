@@ -2,7 +2,16 @@
 
 from ._jit import jit, jit_divide
 
-__all__ = ["boundary_triple_range", "decoupled_triple_range", "row_measures"]
+__all__ = [
+    "active_rule_range",
+    "active_weight_range",
+    "boundary_triple_range",
+    "decoupled_rhs_range",
+    "decoupled_triple_range",
+    "gap_start_range",
+    "row_measures",
+    "warm_active_range",
+]
 
 
 @jit
@@ -64,3 +73,79 @@ def boundary_triple_range(lo, hi, boundary, g, u1, u2, lam):
         u1[i] = g[i]
         u2[i] = 0.0
         lam[i] = 0.0
+
+
+@jit
+def gap_start_range(lo, hi, interior, active, rhs_w, u1, u2, rhs, w0):
+    """Write the gap CG's right-hand side and start at the interior vertices ``interior[lo:hi]``.
+
+    ``rhs = where(active, 0, rhs_w)`` and ``w0 = where(active, 0, (u1 - u2)[interior])``
+    (:meth:`fastmem.solver.steps.DecoupledCG.start`): the same values, in one pass
+    instead of a gather, a subtraction and two selections.
+    """
+    for r in range(lo, hi):
+        if active[r]:
+            rhs[r] = 0.0
+            w0[r] = 0.0
+        else:
+            rhs[r] = rhs_w[r]
+            i = interior[r]
+            w0[r] = u1[i] - u2[i]
+
+
+@jit_divide
+def active_weight_range(lo, hi, interior, d, d1, d2, lumped, out):
+    """``out = (d / d1 + d / d2) * lumped`` at the interior vertices ``interior[lo:hi]``.
+
+    The operations of :attr:`fastmem.fem.scene.Scene.active_weight` on the
+    diagonals of ``A``, ``mu1 A`` and ``mu2 A``, in its order: the same bits.
+    """
+    for r in range(lo, hi):
+        i = interior[r]
+        a = d[i]
+        kappa = a / d1[i]
+        kappa += a / d2[i]
+        out[r] = kappa * lumped[i]
+
+
+@jit
+def active_rule_range(lo, hi, interior, c, u1, u2, lam, out):
+    """``out = lam > c (u1 - u2)`` at the interior vertices ``interior[lo:hi]``.
+
+    :meth:`fastmem.fem.scene.Scene.active_rule`'s operations, the same bits.
+    """
+    for r in range(lo, hi):
+        i = interior[r]
+        out[r] = lam[i] > c * (u1[i] - u2[i])
+
+
+@jit
+def warm_active_range(lo, hi, interior, weight, u1, u2, lam, out):
+    """``out = weight lam > u1 - u2`` at the interior vertices ``interior[lo:hi]``.
+
+    :func:`fastmem.solver.nested.warm_active_set`'s operations (``weight`` over the
+    interior vertices), the same bits.
+    """
+    for r in range(lo, hi):
+        i = interior[r]
+        out[r] = weight[r] * lam[i] > (u1[i] - u2[i])
+
+
+@jit_divide
+def decoupled_rhs_range(
+    lo, hi, interior, indptr, indices, data, g, f1, f2, mu1, mu2, rhs_w, rhs_s
+):  # fmt: skip
+    """Write the decoupled step's right-hand sides at the interior vertices ``interior[lo:hi]``.
+
+    With ``lift = A g`` (row i of the stiffness matrix summed in the order of its
+    stored entries, as scipy sums ``A @ g``): ``rhs_w = (f1 / mu1 - f2 / mu2) - lift``
+    and ``rhs_s = (f1 + f2) - mu1 lift`` at each interior vertex, the operations of
+    :class:`fastmem.solver.linear.DecoupledStep` in its order: the same bits.
+    """
+    for r in range(lo, hi):
+        i = interior[r]
+        lift = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            lift += data[k] * g[indices[k]]
+        rhs_w[r] = (f1[i] / mu1 - f2[i] / mu2) - lift
+        rhs_s[r] = (f1[i] + f2[i]) - mu1 * lift

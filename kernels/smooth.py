@@ -21,6 +21,7 @@ __all__ = [
     "cg_direction_range",
     "cg_update_range",
     "cross_block_dominant",
+    "csr_diagonal_range",
     "csr_matvec_range",
     "gs_hybrid_range",
     "masked_rhs_range",
@@ -67,6 +68,21 @@ def csr_matvec_range(lo, hi, indptr, indices, data, x, y):
         for k in range(indptr[i], indptr[i + 1]):
             s += data[k] * x[indices[k]]
         y[i] = s
+
+
+@jit
+def csr_diagonal_range(lo, hi, indptr, indices, data, d):
+    """``d[i]`` = the sum of row i's stored entries in column i, rows ``lo .. hi-1``.
+
+    In the order of the stored entries from 0.0, as scipy's ``csr_diagonal``
+    sums them: the same bits (0.0 where the row stores no diagonal entry).
+    """
+    for i in range(lo, hi):
+        s = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            if indices[k] == i:
+                s += data[k]
+        d[i] = s
 
 
 @jit

@@ -21,6 +21,9 @@ from ..errors import (
     ReadOnlyError,
     checked_keywords,
 )
+from ..kernels import pool as _par
+from ..kernels.rows import active_rule_range, active_weight_range
+from ..linalg.sparse import THREADED_ROWS, csr_diagonal, plain_float64, read_only
 from ..mesh.mesh import Mesh
 from .assembly import DEFAULT_LOAD_DEGREE, assemble_stiffness, evaluate_callable
 from .loaddata import integrals
@@ -451,6 +454,20 @@ class Scene:
         """
         if "kB" not in self._cache:
             ii = self.mesh.interior_vertices
+            if ii.size >= THREADED_ROWS:  # one pass of the kernel threads, the same bits
+                mats = (self.stiffness, self.weighted_stiffness(1), self.weighted_stiffness(2))
+                diagonals = {}
+                for m in mats:
+                    if id(m) not in diagonals:
+                        diagonals[id(m)] = read_only(csr_diagonal(m))
+                d, d1, d2 = (diagonals[id(m)] for m in mats)
+                kb = np.empty(ii.size)
+                lumped = read_only(np.ascontiguousarray(self.mesh.lumped_mass, dtype=np.float64))
+                _par.parallel_for(
+                    active_weight_range, ii.size, read_only(ii), d, d1, d2, lumped, kb
+                )
+                self._cache["kB"] = kb
+                return kb
             a = self.stiffness.diagonal()[ii]
             kappa = a / self.weighted_stiffness(1).diagonal()[ii]
             kappa += a / self.weighted_stiffness(2).diagonal()[ii]
@@ -467,6 +484,13 @@ class Scene:
         :func:`fastmem.solver.nested.warm_active_set` instead).
         """
         ii = self.mesh.interior_vertices
+        if ii.size >= THREADED_ROWS and plain_float64((u1, u2, lam), self.mesh.n_vertices):
+            out = np.empty(ii.size, dtype=np.bool_)
+            _par.parallel_for(
+                active_rule_range, ii.size, read_only(ii), float(self.active_c),
+                read_only(u1), read_only(u2), read_only(lam), out,
+            )  # fmt: skip
+            return out
         return lam[ii] > self.active_c * (u1[ii] - u2[ii])
 
     @property

@@ -12,9 +12,18 @@ from ..kernels.masked import (
     submatrix_counts_range,
     submatrix_fill_range,
 )
-from ..kernels.smooth import csr_abs_matvec_range, csr_matvec_range
+from ..kernels.mg import residual_range
+from ..kernels.smooth import csr_abs_matvec_range, csr_diagonal_range, csr_matvec_range
 
-__all__ = ["THREADED_ROWS", "ThreadedCSR", "masked_gap", "read_only", "submatrix", "threaded"]
+__all__ = [
+    "THREADED_ROWS",
+    "ThreadedCSR",
+    "csr_diagonal",
+    "masked_gap",
+    "read_only",
+    "submatrix",
+    "threaded",
+]
 
 
 def as_unsigned(index: np.ndarray) -> np.ndarray:
@@ -108,6 +117,32 @@ class ThreadedCSR(sp.csr_matrix):
         _par.parallel_for(csr_matvec_range, self.shape[0], indptr, indices, data, x, y)
         return y
 
+    def residual(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Return ``b - A x`` (float64 vectors) from the kernel threads, in one pass.
+
+        Each row's product summed as :meth:`_product` sums it, then subtracted
+        from ``b``: the same bits as ``b - A @ x``, without the product's
+        temporary (:func:`fastmem.kernels.mg.residual_range`).
+        """
+        n = self.shape[0]
+        if (
+            self.dtype != np.float64
+            or not plain_float64((b,), n)
+            or not plain_float64((x,), self.shape[1])
+            or not _kernel_arrays(self)
+        ):
+            return b - self @ x
+        r = np.empty(n)
+        indptr, indices = as_unsigned(self.indptr), as_unsigned(self.indices)
+        _par.parallel_for(residual_range, n, indptr, indices, self.data, x, b, r)
+        return r
+
+    def diagonal(self, k: int = 0) -> np.ndarray:
+        """Return the main diagonal from the kernel threads (:func:`csr_diagonal`, same bits)."""
+        if k != 0 or self.shape[0] != self.shape[1] or not _kernel_arrays(self):
+            return super().diagonal(k)
+        return csr_diagonal(self)
+
     def abs_product_plus(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
         """Return ``|A| |x| + |b|`` (float64 vectors) from the kernel threads, without ``|A|``.
 
@@ -130,6 +165,23 @@ class ThreadedCSR(sp.csr_matrix):
         indptr, indices = as_unsigned(self.indptr), as_unsigned(self.indices)
         _par.parallel_for(csr_abs_matvec_range, self.shape[0], indptr, indices, self.data, x, b, y)
         return y
+
+
+def csr_diagonal(a) -> np.ndarray:
+    """Return the main diagonal of the square CSR matrix ``a``, rows in the kernel threads.
+
+    Each entry the sum of the row's stored entries in the diagonal column, as
+    scipy's ``diagonal()`` sums them (0 where there is none): the same bits.
+    Smaller matrices, and arrays the kernel does not take, go to scipy.
+    """
+    n = a.shape[0]
+    if n < THREADED_ROWS or a.shape[1] != n or a.dtype != np.float64 or not _kernel_arrays(a):
+        return sp.csr_matrix.diagonal(a)
+    d = np.empty(n)
+    _par.parallel_for(
+        csr_diagonal_range, n, as_unsigned(a.indptr), as_unsigned(a.indices), a.data, d
+    )
+    return d
 
 
 def threaded(a):

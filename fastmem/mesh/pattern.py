@@ -21,12 +21,12 @@ def csr_structure(mesh):
         n = mesh.n_vertices
         nnz = n + 2 * mesh.n_edges
         index_dtype = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
-        row_len = 1 + np.bincount(mesh.edges.ravel(), minlength=n)
-        if row_len.max() > np.iinfo(np.uint16).max:
-            raise MeshError(
-                f"a vertex has {int(row_len.max()) - 1} neighbours; at most 65534 are supported"
-            )
-        indptr, indices = _sp.csr_pattern(n, mesh.edges, index_dtype)
+        indptr, indices = _sp.csr_pattern(
+            n, mesh.triangles, mesh.patch_ptr, mesh.patch_triangles, mesh.patch_local, index_dtype
+        )
+        longest = int(np.diff(indptr).max()) if n else 0
+        if longest > np.iinfo(np.uint16).max:
+            raise MeshError(f"a vertex has {longest - 1} neighbours; at most 65534 are supported")
         offsets = _sp.position_map(mesh.triangles, indptr, indices)
         cache["csr_structure"] = (indptr, indices, offsets)
     return cache["csr_structure"]

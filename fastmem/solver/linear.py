@@ -182,11 +182,25 @@ class DecoupledStep(_Base):
         a = scene.stiffness
         self.a_ii = self.interior_laplacian()
         f1, f2 = scene.loads
-        lift = a @ self.g_full  # A restricted to boundary columns applied to g
         # s = mu1 g on the boundary; w = g on the boundary.
-        fw = f1 / mu1 - f2 / mu2
-        self.rhs_w = fw[ii] - lift[ii]
-        self.rhs_s = (f1 + f2)[ii] - mu1 * lift[ii]
+        g = self.g_full
+        if (
+            ii.size >= THREADED_ROWS
+            and plain_float64((f1, f2, g), self.n)
+            and a.dtype == np.float64
+            and a.indptr.dtype == a.indices.dtype
+        ):  # one pass of the kernel threads over the interior rows, the same bits
+            self.rhs_w, self.rhs_s = np.empty(ii.size), np.empty(ii.size)
+            _par.parallel_for(
+                _rows.decoupled_rhs_range, ii.size, read_only(ii), as_unsigned(a.indptr),
+                as_unsigned(a.indices), a.data, read_only(g), read_only(f1), read_only(f2),
+                float(mu1), float(mu2), self.rhs_w, self.rhs_s,
+            )  # fmt: skip
+        else:
+            lift = a @ g  # A restricted to boundary columns applied to g
+            fw = f1 / mu1 - f2 / mu2
+            self.rhs_w = fw[ii] - lift[ii]
+            self.rhs_s = (f1 + f2)[ii] - mu1 * lift[ii]
         self._lu = None
         self._s = None
 
@@ -315,6 +329,23 @@ def precompile() -> None:
     )  # fmt: skip
     step = DecoupledStep(scene)
     threaded_triple(step, np.zeros(ii.size, dtype=bool), z, z[ii])
+    # the gap CG's start (fastmem.solver.steps.DecoupledCG) and the weight of the first
+    # active set of a prolonged triple (fastmem.fem.scene.Scene.active_weight)
+    frozen = read_only(z)
+    index = read_only(np.asarray(ii, dtype=np.int64))
+    mask = read_only(np.zeros(ii.size, dtype=bool))
+    out, out2 = np.empty(ii.size), np.empty(ii.size)
+    _rows.gap_start_range(0, ii.size, index, mask, read_only(z[ii]), frozen, frozen, out, out2)
+    ones = read_only(np.ones(mesh.n_vertices))
+    _rows.active_weight_range(0, ii.size, index, ones, ones, ones, ones, out)
+    flags = np.empty(ii.size, dtype=np.bool_)
+    _rows.active_rule_range(0, ii.size, index, 1.0, frozen, frozen, frozen, flags)
+    _rows.warm_active_range(0, ii.size, index, read_only(out), frozen, frozen, frozen, flags)
+    a = scene.stiffness
+    _rows.decoupled_rhs_range(
+        0, ii.size, index, as_unsigned(a.indptr), as_unsigned(a.indices), a.data, frozen,
+        frozen, frozen, 1.0, 2.0, out, out2,
+    )  # fmt: skip
 
 
 def make_step(scene, path: str = "auto"):

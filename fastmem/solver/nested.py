@@ -27,6 +27,8 @@ from ..errors import FastmemError, MeshError
 from ..fem.scene import Scene
 from ..kernels import mg as _kmg
 from ..kernels import pool as _par
+from ..kernels.rows import warm_active_range
+from ..linalg.sparse import THREADED_ROWS, plain_float64, read_only
 from ..mesh.coarsen import coarse_mesh, inside, locate
 from ..mesh.mesh import Mesh
 
@@ -366,4 +368,16 @@ def warm_active_set(scene: Scene, triple) -> np.ndarray:
     """
     u1, u2, lam = triple
     ii = scene.mesh.interior_vertices
-    return scene.active_weight * lam[ii] > (u1[ii] - u2[ii])
+    weight = scene.active_weight
+    if (
+        ii.size >= THREADED_ROWS
+        and plain_float64((u1, u2, lam), scene.mesh.n_vertices)
+        and plain_float64((weight,), ii.size)
+    ):  # one pass of the kernel threads, the same bits
+        out = np.empty(ii.size, dtype=np.bool_)
+        _par.parallel_for(
+            warm_active_range, ii.size, read_only(ii), read_only(weight),
+            read_only(u1), read_only(u2), read_only(lam), out,
+        )  # fmt: skip
+        return out
+    return weight * lam[ii] > (u1[ii] - u2[ii])

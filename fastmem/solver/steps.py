@@ -48,6 +48,7 @@ import scipy.sparse as sp
 
 from ..estimators.terms import lumped_norm, mass_matrix
 from ..kernels import pool as _par
+from ..kernels.rows import gap_start_range
 from ..kernels.smooth import active_diagonal_range, masked_rhs_range
 from ..linalg.amg import PCG, LazyAMG, TwoGridLaplacian, amg_preconditioner
 from ..linalg.gmg import NestedChain, NestedMG
@@ -384,10 +385,27 @@ class DecoupledCG:
         ):
             # a few thousand vertices changed: same prolongators, exact coarse operators
             self._update_w(mat, active)
-        rhs = np.where(active, 0.0, st.rhs_w)
-        w0 = np.where(active, 0.0, (u1 - u2)[ii])
+        rhs, w0 = self._gap_start(active, u1, u2)
         self.active = active.copy()
         self.cg_w = PCG(mat, rhs, w0, _WeakCall(self._masked))
+
+    def _gap_start(self, active, u1, u2):
+        """Return the gap CG's right-hand side and start (0 on ``active``)."""
+        st = self.system
+        ii = st.interior
+        n = ii.size
+        if (
+            n < THREADED_ROWS
+            or not plain_float64((st.rhs_w,), n)
+            or not plain_float64((u1, u2), st.n)
+        ):
+            return np.where(active, 0.0, st.rhs_w), np.where(active, 0.0, (u1 - u2)[ii])
+        rhs, w0 = np.empty(n), np.empty(n)
+        _par.parallel_for(
+            gap_start_range, n, read_only(ii), read_only(active), read_only(st.rhs_w),
+            read_only(u1), read_only(u2), rhs, w0,
+        )  # fmt: skip
+        return rhs, w0
 
     def _gmg_w(self, mat, active, key="amg"):
         """Build the geometric multigrid of the gap matrix ``mat`` of ``active``."""

@@ -2,12 +2,14 @@ import naive
 import numba
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from meshes import perturbed_square
 from numpy.testing import assert_allclose
 
 import fastmem as fm
 from fastmem.fem.assembly import assemble_load, assemble_mass, assemble_stiffness
 from fastmem.fem.quadrature import triangle_rule
+from fastmem.mesh import refine_marked
 from fastmem.mesh.pattern import csr_structure
 
 MESHES = {
@@ -65,6 +67,24 @@ def test_pattern_is_vertex_graph():
     pos = indptr[t[:, :, None]] + offsets  # (M, 3, 3)
     assert np.array_equal(indices[pos], np.broadcast_to(t[:, None, :], pos.shape))
     assert csr_structure(mesh) is csr_structure(mesh)  # cached
+
+
+def test_pattern_matches_the_triangle_pairs_in_several_chunks():
+    """The rows built from the patches in vertex chunks: scipy's pattern of all triangle pairs."""
+    base = fm.Mesh.square(96)  # 9,409 vertices: more than one chunk of the kernel threads
+    marked = np.zeros(base.n_triangles, dtype=bool)
+    marked[::7] = True
+    mesh = refine_marked(base, marked)[0]  # refined: patches of unequal sizes
+    indptr, indices, _ = csr_structure(mesh)
+    t = mesh.triangles
+    rows = np.repeat(t, 3, axis=1).ravel()
+    cols = np.tile(t, (1, 3)).ravel()
+    ref = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(mesh.n_vertices,) * 2).tocsr()
+    ref.sum_duplicates()
+    ref.sort_indices()
+    assert indptr.dtype == indices.dtype == np.int32
+    np.testing.assert_array_equal(indptr, ref.indptr)
+    np.testing.assert_array_equal(indices, ref.indices)
 
 
 def test_stiffness_properties():

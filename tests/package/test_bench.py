@@ -225,6 +225,28 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
     assert all(r["adaptive_speedup_median"] > 0 for r in adaptive)
 
 
+def test_critical_path_adds_up(quick):
+    """The probed solve: the same η, its time split into loops and the rest, spans in range."""
+    d = quick("critical_path")
+    for row in d["rows"]:
+        threads = row["threads"]
+        assert row["same_eta"], row["scene"]
+        assert row["repeats"]
+        for rep in row["repeats"]:
+            assert rep["parallel_work_s"] + rep["outside_s"] == pytest.approx(rep["serial_s"])
+            assert rep["outside_s"] >= 0.0
+            # a loop takes at least its work spread evenly, at most its work in one thread
+            assert rep["parallel_work_s"] / threads <= rep["span_s"] * (1 + 1e-9)
+            assert rep["span_s"] <= rep["parallel_work_s"] * (1 + 1e-9)
+            assert 1.0 <= rep["ideal_speedup"] <= threads
+            assert rep["loops"] > 0
+        for site in row["sites"]:
+            assert site["work_s"] / threads <= site["span_s"] * (1 + 1e-9)
+            assert site["span_s"] <= site["work_s"] * (1 + 1e-9)
+        assert row["outside_top"]
+        assert sum(f["self_s"] for f in row["outside_top"]) <= row["serial_s"]
+
+
 def test_report_and_figures(quick, results):
     for name in BENCHMARKS:
         quick(name)
