@@ -10,6 +10,7 @@ __all__ = [
     "decoupled_triple_range",
     "gap_start_range",
     "row_measures",
+    "spread_range",
     "warm_active_range",
 ]
 
@@ -149,3 +150,10 @@ def decoupled_rhs_range(
             lift += data[k] * g[indices[k]]
         rhs_w[r] = (f1[i] / mu1 - f2[i] / mu2) - lift
         rhs_s[r] = (f1[i] + f2[i]) - mu1 * lift
+
+
+@jit
+def spread_range(lo, hi, index, values, out):
+    """``out[index[r]] = values[r]`` for ``r`` in ``lo .. hi-1`` (distinct indices)."""
+    for r in range(lo, hi):
+        out[index[r]] = values[r]

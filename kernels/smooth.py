@@ -14,13 +14,17 @@ each other's adjoints (``(D + L_B)^T = D + U_B`` for symmetric ``A``, with
 the V-cycle built from it stay symmetric preconditioners, as CG requires.
 """
 
+import numpy as np
+
 from ._jit import jit, jit_divide
+from .pool import parallel_for
 
 __all__ = [
     "active_diagonal_range",
     "cg_direction_range",
     "cg_update_range",
     "cross_block_dominant",
+    "cross_block_dominant_range",
     "csr_diagonal_range",
     "csr_matvec_range",
     "gs_hybrid_range",
@@ -100,7 +104,6 @@ def csr_abs_matvec_range(lo, hi, indptr, indices, data, x, b, y):
         y[i] = s + abs(b[i])
 
 
-@jit
 def cross_block_dominant(indptr, indices, data, n_blocks):
     """Whether every row's diagonal exceeds the sum of its entries outside its block.
 
@@ -109,12 +112,27 @@ def cross_block_dominant(indptr, indices, data, n_blocks):
     entries coupling different blocks and ``D`` the diagonal, the hybrid
     Gauss-Seidel smoother ``M = D + L_B`` of an SPD matrix converges in the
     energy norm iff ``M + M^T - A = D - C`` is positive definite, which this
-    row-wise dominance implies (Gershgorin).
+    row-wise dominance implies (Gershgorin).  The blocks are checked in the
+    kernel threads (:func:`cross_block_dominant_range`), each up to its first
+    failing row.
+    """
+    ok = np.empty(max(int(n_blocks), 0), dtype=np.bool_)
+    parallel_for(cross_block_dominant_range, ok.size, indptr, indices, data, ok, grain=1)
+    return bool(ok.all())
+
+
+@jit
+def cross_block_dominant_range(lo_b, hi_b, indptr, indices, data, ok):
+    """Write to ``ok[b]`` whether block ``b`` of ``ok.size`` passes, ``b`` in ``lo_b .. hi_b-1``.
+
+    See :func:`cross_block_dominant`.
     """
     n = indptr.shape[0] - 1
-    for b in range(n_blocks):
+    n_blocks = ok.shape[0]
+    for b in range(lo_b, hi_b):
         lo = n * b // n_blocks
         hi = n * (b + 1) // n_blocks
+        ok[b] = True
         for i in range(lo, hi):
             d = 0.0
             c = 0.0
@@ -125,8 +143,8 @@ def cross_block_dominant(indptr, indices, data, n_blocks):
                 elif j < lo or j >= hi:
                     c += abs(data[k])
             if c > 0.0 and not d > c:
-                return False
-    return True
+                ok[b] = False
+                break
 
 
 @jit

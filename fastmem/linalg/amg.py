@@ -369,7 +369,7 @@ def precompile() -> None:
     )
     x, b, old = np.zeros(2), np.ones(2), np.zeros(2)
     gs_hybrid_range(0, 2, True, indptr, indices, a.data, x, old, b)
-    cross_block_dominant(indptr, indices, a.data, 2)
+    cross_block_dominant(indptr, indices, a.data, 2)  # (its range kernel)
     frozen = np.ones(2)
     frozen.setflags(write=False)
     csr_matvec_range(0, 2, indptr, indices, a.data, frozen, x)

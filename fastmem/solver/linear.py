@@ -92,7 +92,11 @@ class _Base:
 
     def _full(self, interior_values, boundary_values=0.0):
         out = np.empty(self.n)
-        out[self.interior] = interior_values
+        ii = self.interior
+        if ii.size >= THREADED_ROWS and plain_float64((interior_values,), ii.size):
+            _par.parallel_for(_rows.spread_range, ii.size, ii, read_only(interior_values), out)
+        else:
+            out[ii] = interior_values
         out[self.boundary] = (
             boundary_values if np.isscalar(boundary_values) else (boundary_values[self.boundary])
         )
@@ -341,6 +345,7 @@ def precompile() -> None:
     flags = np.empty(ii.size, dtype=np.bool_)
     _rows.active_rule_range(0, ii.size, index, 1.0, frozen, frozen, frozen, flags)
     _rows.warm_active_range(0, ii.size, index, read_only(out), frozen, frozen, frozen, flags)
+    _rows.spread_range(0, ii.size, index, read_only(out2), np.empty(mesh.n_vertices))
     a = scene.stiffness
     _rows.decoupled_rhs_range(
         0, ii.size, index, as_unsigned(a.indptr), as_unsigned(a.indices), a.data, frozen,

@@ -579,8 +579,7 @@ class DecoupledCG:
         """
         st = self.system
         if mass is None:
-            r = np.zeros(st.n)
-            r[st.interior] = self.cg_s.r
+            r = st._full(self.cg_s.r)  # 0 on the boundary
             norm = lumped_norm(st.scene, r)
             if norm is not None:
                 return c_f * norm / math.sqrt(st.mu1 + st.mu2)

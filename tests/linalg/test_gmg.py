@@ -25,7 +25,7 @@ import fastmem as fm
 from fastmem.errors import ParameterError
 from fastmem.fem.assembly import assemble_stiffness
 from fastmem.linalg.amg import PCG
-from fastmem.linalg.gmg import NestedChain, NestedMG, galerkin
+from fastmem.linalg.gmg import NestedChain, NestedMG, galerkin, restriction
 from fastmem.mesh.coarsen import coarse_mesh
 from fastmem.problems import Manufactured
 from fastmem.solver.nested import interpolation_matrix
@@ -298,3 +298,16 @@ def test_warm_up_compiles_the_nested_multigrid():
         "assert used[-1] == 'geometric' and used[-2] == 'two-grid', used"
     )
     assert compiled_after("fm.warm_up('inexact', large=True)", work) == []
+
+
+def test_chains_share_the_transposes_of_their_links():
+    """Nested iteration builds a chain per level from the links below: each P^T formed once."""
+    rng = np.random.default_rng(3)
+    p0 = sp.random(40, 15, density=0.2, random_state=rng, format="csr")
+    p1 = sp.random(15, 6, density=0.3, random_state=rng, format="csr")
+    low = NestedChain([p1])
+    high = NestedChain([p0, p1])
+    assert high.r(1) is low.r(0)
+    assert restriction(p0) is high.r(0)
+    np.testing.assert_array_equal(high.r(0).toarray(), p0.toarray().T)
+    np.testing.assert_array_equal(low.r(0).toarray(), p1.toarray().T)

@@ -12,6 +12,7 @@ import numba
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from fastmem.kernels.smooth import cross_block_dominant
 from pyamg.relaxation.relaxation import gauss_seidel
 
 import fastmem as fm
@@ -22,7 +23,7 @@ from fastmem.linalg.amg import (
     HybridGaussSeidel,
     amg_preconditioner,
 )
-from fastmem.linalg.sparse import ThreadedCSR, threaded
+from fastmem.linalg.sparse import ThreadedCSR, as_unsigned, threaded
 from fastmem.solver.steps import gap_matrix
 
 
@@ -293,3 +294,36 @@ def test_cg_with_fused_updates_is_the_numpy_cg(monkeypatch):
         fused[0] + [fused[1], fused[2]], plain[0] + [plain[1], plain[2]], strict=True
     ):
         np.testing.assert_array_equal(got, want)
+
+
+def _dominant_numpy(a, n_blocks):
+    """Reference of cross_block_dominant: each row's diagonal against its cross-block sum."""
+    n = a.shape[0]
+    edges = np.array([n * k // n_blocks for k in range(n_blocks + 1)])
+    block = np.searchsorted(edges, np.arange(n), side="right") - 1
+    coo = a.tocoo()
+    cross = block[coo.row] != block[coo.col]
+    c = np.bincount(coo.row[cross], weights=np.abs(coo.data[cross]), minlength=n)
+    d = a.diagonal()
+    return bool(np.all((c == 0.0) | (d > c)))
+
+
+@pytest.mark.parametrize("n_blocks", [2, 5, 16])
+def test_cross_block_dominance_matches_numpy(rng, n_blocks):
+    n = 2000
+    a = sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr()
+    arrays = (as_unsigned(a.indptr), as_unsigned(a.indices), a.data)
+    assert cross_block_dominant(*arrays, n_blocks) is _dominant_numpy(a, n_blocks) is True
+    # one row in the last block coupled across blocks more strongly than its diagonal
+    b = a.tolil()
+    row = n - 3
+    b[row, 0] = -2.5
+    b = b.tocsr()
+    arrays = (as_unsigned(b.indptr), as_unsigned(b.indices), b.data)
+    assert cross_block_dominant(*arrays, n_blocks) is _dominant_numpy(b, n_blocks) is False
+    # random weights: the two agree
+    c = sp.random(n, n, density=3 / n, random_state=np.random.default_rng(1), format="csr")
+    c = (c + c.T + sp.diags(rng.uniform(0.0, 3.0, n))).tocsr()
+    c.sort_indices()
+    arrays = (as_unsigned(c.indptr), as_unsigned(c.indices), c.data)
+    assert cross_block_dominant(*arrays, n_blocks) is _dominant_numpy(c, n_blocks)

@@ -140,3 +140,17 @@ def test_gap_start(kernel_path, rng):
         _same(a, b)
     assert np.all(out[True][0][active] == 0.0)
     assert np.all(out[True][1][active] == 0.0)
+
+
+def test_full_vectors_from_interior_values(kernel_path, rng):
+    scene = _scene((1.0, 1.0))
+    step = DecoupledStep(scene)
+    inner = rng.standard_normal(step.interior.size)
+    out = {}
+    for on in (False, True):
+        kernel_path(on)
+        out[on] = (step._full(inner), step._full(inner, step.g_full))
+    for a, b in zip(out[False], out[True], strict=True):
+        _same(a, b)
+    np.testing.assert_array_equal(out[True][0][step.interior], inner)
+    assert np.all(out[True][0][step.boundary] == 0.0)
