@@ -113,10 +113,7 @@ def run(sizes, repeat):
         _ = mesh.edges, mesh.patch_ptr
         t_topo = time.perf_counter() - t0
         t0 = time.perf_counter()
-        indptr, indices = ks.csr_pattern(
-            mesh.n_vertices, mesh.triangles, mesh.patch_ptr, mesh.patch_triangles,
-            mesh.patch_local, np.int32,
-        )  # fmt: skip
+        indptr, indices = ks.csr_pattern(mesh.n_vertices, mesh.edges, np.int32)
         t_pattern = time.perf_counter() - t0
         t0 = time.perf_counter()
         offsets = ks.position_map(mesh.triangles, indptr, indices)

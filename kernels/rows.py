@@ -9,6 +9,7 @@ __all__ = [
     "decoupled_rhs_range",
     "decoupled_triple_range",
     "gap_start_range",
+    "lambda_parts_range",
     "row_measures",
     "spread_range",
     "warm_active_range",
@@ -157,3 +158,18 @@ def spread_range(lo, hi, index, values, out):
     """``out[index[r]] = values[r]`` for ``r`` in ``lo .. hi-1`` (distinct indices)."""
     for r in range(lo, hi):
         out[index[r]] = values[r]
+
+
+@jit
+def lambda_parts_range(lo, hi, lam, boundary, lam_hat, lam_minus):
+    """``lam_hat = max(lam, 0)`` and ``lam_minus = lam_hat - lam``, 0 on the boundary.
+
+    Vertices ``lo .. hi-1``; NumPy's ``maximum`` (the first argument where it is
+    greater or NaN, else the second: ``maximum(-0.0, 0.0) = 0.0``) and subtraction,
+    the same bits as :func:`fastmem.estimators.terms._lambda_parts`' NumPy path.
+    """
+    for i in range(lo, hi):
+        v = 0.0 if boundary[i] else lam[i]
+        h = v if (v > 0.0 or v != v) else 0.0
+        lam_hat[i] = h
+        lam_minus[i] = h - v

@@ -2,35 +2,66 @@
 
 The pattern of every P1 matrix on a mesh is the vertex graph: row ``a`` holds
 ``a`` itself and its edge neighbours, columns sorted.  It is built from the
-vertex patches in O(N + M), row by row in the kernel threads, and the
-position map ``offsets[t, i, j]`` says where the local entry ``(i, j)`` of
-triangle ``t`` lands inside row ``triangles[t, i]``.  Both are
+edge list in O(N + E) (counting sort by row, then a short insertion sort per
+row), and the position map ``offsets[t, i, j]`` says where the local entry
+``(i, j)`` of triangle ``t`` lands inside row ``triangles[t, i]``.  Both are
 computed once per mesh; every later assembly is a gather through them.
 """
 
 import numpy as np
 
 from ._jit import jit
-from .pool import GRAIN, n_threads, parallel_for, ranges, run_ranges
+from .pool import parallel_for
 
 __all__ = ["csr_pattern", "position_map"]
 
 
-def csr_pattern(n, triangles, patch_ptr, patch_triangles, patch_local, index_dtype):
-    """CSR pattern (indptr, indices) of the P1 vertex graph with sorted columns.
+@jit
+def _count_rows(edges, counts):
+    for e in range(edges.shape[0]):
+        counts[edges[e, 0]] += 1
+        counts[edges[e, 1]] += 1
 
-    Row ``a`` holds ``a`` and every vertex of a triangle of its patch, once each:
-    the vertex itself and its edge neighbours.  Two passes over vertex chunks in
-    the kernel threads (count, then fill after the prefix sum), each row gathered
-    from the vertex patch, sorted and deduplicated in a scratch row of its chunk.
+
+def _sort_rows(indptr, indices):
+    parallel_for(_sort_rows_range, indptr.shape[0] - 1, indptr, indices)
+
+
+@jit
+def _sort_rows_range(lo_row, hi_row, indptr, indices):
+    for a in range(lo_row, hi_row):
+        lo, hi = indptr[a], indptr[a + 1]
+        for k in range(lo + 1, hi):  # insertion sort: rows have ~7 entries
+            x = indices[k]
+            m = k - 1
+            while m >= lo and indices[m] > x:
+                indices[m + 1] = indices[m]
+                m -= 1
+            indices[m + 1] = x
+
+
+@jit
+def _fill_rows(edges, fill, indices):
+    for a in range(fill.shape[0]):
+        indices[fill[a]] = a
+        fill[a] += 1
+    for e in range(edges.shape[0]):
+        p, q = edges[e, 0], edges[e, 1]
+        indices[fill[p]] = q
+        fill[p] += 1
+        indices[fill[q]] = p
+        fill[q] += 1
+
+
+def csr_pattern(n, edges, index_dtype):
+    """CSR pattern (indptr, indices) of the P1 vertex graph with sorted columns.
 
     Parameters
     ----------
     n : int
         Number of vertices.
-    triangles : ndarray, shape (M, 3)
-    patch_ptr, patch_triangles, patch_local : ndarray
-        The vertex patches (:attr:`fastmem.Mesh.patch_ptr` and the others).
+    edges : ndarray of int64, shape (E, 2)
+        Edge list (each unordered pair once).
     index_dtype : numpy dtype
         int32 or int64, the dtype of ``indptr`` and ``indices``.
 
@@ -39,68 +70,14 @@ def csr_pattern(n, triangles, patch_ptr, patch_triangles, patch_local, index_dty
     indptr : ndarray, shape (n + 1,)
     indices : ndarray, shape (n + 2 E,)
     """
-    chunks = ranges(n, n_threads(), GRAIN)
-    width = 2 * int(np.diff(patch_ptr).max()) + 1 if n else 1
-    scratch = np.empty((len(chunks), width), dtype=np.int64)
-    which = {lo: c for c, (lo, _) in enumerate(chunks)}
-    counts = np.empty(n, dtype=np.int64)
-
-    def count(lo, hi):
-        _pattern_rows(
-            lo, hi, triangles, patch_ptr, patch_triangles, patch_local, scratch[which[lo]],
-            counts, counts, counts[:0],
-        )  # fmt: skip
-
-    run_ranges(count, chunks)
+    counts = np.ones(n, dtype=np.int64)  # the diagonal
+    _count_rows(edges, counts)  # (the kernels allocate nothing: less code to compile)
     indptr = np.zeros(n + 1, dtype=index_dtype)
     np.cumsum(counts, out=indptr[1:])
     indices = np.empty(int(indptr[-1]), dtype=index_dtype)
-    starts = indptr[:-1].astype(np.int64)
-
-    def fill(lo, hi):
-        _pattern_rows(
-            lo, hi, triangles, patch_ptr, patch_triangles, patch_local, scratch[which[lo]],
-            counts, starts, indices,
-        )  # fmt: skip
-
-    run_ranges(fill, chunks)
+    _fill_rows(edges, indptr[:-1].copy(), indices)
+    _sort_rows(indptr, indices)
     return indptr, indices
-
-
-@jit
-def _pattern_rows(lo, hi, t, ptr, ptris, plocal, row, counts, starts, out):
-    """Rows ``lo .. hi-1`` of the vertex graph: their lengths (``out`` empty) or entries.
-
-    ``row``: scratch of at least 2 (largest patch) + 1 entries.  With an empty
-    ``out`` the number of distinct columns of each row goes to ``counts``;
-    otherwise the sorted columns of row ``a`` go to ``out[starts[a]:]``.
-    """
-    fill = out.shape[0] > 0
-    for a in range(lo, hi):
-        m = 0
-        row[m] = a
-        m += 1
-        for p in range(ptr[a], ptr[a + 1]):
-            k = ptris[p]
-            i = plocal[p]
-            for d in (1, 2):
-                v = t[k, (i + d) % 3]
-                # insertion into the sorted prefix, skipping a column already there
-                q = m - 1
-                while q >= 0 and row[q] > v:
-                    q -= 1
-                if q >= 0 and row[q] == v:
-                    continue
-                for s in range(m, q + 1, -1):
-                    row[s] = row[s - 1]
-                row[q + 1] = v
-                m += 1
-        if fill:
-            base = starts[a]
-            for s in range(m):
-                out[base + s] = row[s]
-        else:
-            counts[a] = m
 
 
 def position_map(triangles, indptr, indices):

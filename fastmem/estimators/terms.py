@@ -74,8 +74,9 @@ from ..fem.assembly import assemble_mass
 from ..fem.loaddata import integrals
 from ..kernels import cut as _cut
 from ..kernels import pool as _par
+from ..kernels import rows as _rows
 from ..kernels import sums as _sums
-from ..linalg.sparse import plain_float64, read_only, threaded
+from ..linalg.sparse import THREADED_ROWS, plain_float64, read_only, threaded
 
 __all__ = [
     "check_totals",
@@ -134,7 +135,19 @@ def _nodal(mesh, x, name) -> np.ndarray:
 
 
 def _lambda_parts(mesh, lam):
-    """Nodal ``(lam_hat, lam_minus)`` = ``(max(lam, 0), max(lam, 0) - lam)``, 0 on the boundary."""
+    """Nodal ``(lam_hat, lam_minus)`` = ``(max(lam, 0), max(lam, 0) - lam)``, 0 on the boundary.
+
+    From :data:`~fastmem.linalg.sparse.THREADED_ROWS` vertices on, one pass of the
+    kernel threads (:func:`fastmem.kernels.rows.lambda_parts_range`, the same bits).
+    """
+    n = mesh.n_vertices
+    if n >= THREADED_ROWS and plain_float64((lam,), n):
+        lam_hat, lam_minus = np.empty(n), np.empty(n)
+        _par.parallel_for(
+            _rows.lambda_parts_range, n, read_only(lam), mesh.boundary_vertex_mask,
+            lam_hat, lam_minus,
+        )  # fmt: skip
+        return lam_hat, lam_minus
     lam = lam.copy()
     lam[mesh.boundary_vertex_mask] = 0.0
     lam_hat = np.maximum(lam, 0.0)

@@ -346,6 +346,8 @@ def precompile() -> None:
     _rows.active_rule_range(0, ii.size, index, 1.0, frozen, frozen, frozen, flags)
     _rows.warm_active_range(0, ii.size, index, read_only(out), frozen, frozen, frozen, flags)
     _rows.spread_range(0, ii.size, index, read_only(out2), np.empty(mesh.n_vertices))
+    full = np.empty(mesh.n_vertices)
+    _rows.lambda_parts_range(0, z.size, frozen, mesh.boundary_vertex_mask, full, np.empty(z.size))
     a = scene.stiffness
     _rows.decoupled_rhs_range(
         0, ii.size, index, as_unsigned(a.indptr), as_unsigned(a.indices), a.data, frozen,

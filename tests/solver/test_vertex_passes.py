@@ -11,6 +11,7 @@ import pytest
 import scipy.sparse as sp
 
 import fastmem as fm
+from fastmem.estimators import terms as terms_module
 from fastmem.fem import scene as scene_module
 from fastmem.linalg import sparse as sparse_module
 from fastmem.linalg.amg import PCG
@@ -22,7 +23,7 @@ from fastmem.solver.linear import DecoupledStep
 from fastmem.solver.nested import warm_active_set
 from fastmem.solver.steps import DecoupledCG
 
-MODULES = (scene_module, sparse_module, linear_module, nested_module, steps_module)
+MODULES = (scene_module, sparse_module, linear_module, nested_module, steps_module, terms_module)
 
 
 @pytest.fixture
@@ -154,3 +155,19 @@ def test_full_vectors_from_interior_values(kernel_path, rng):
         _same(a, b)
     np.testing.assert_array_equal(out[True][0][step.interior], inner)
     assert np.all(out[True][0][step.boundary] == 0.0)
+
+
+def test_lambda_parts(kernel_path, rng):
+    mesh = fm.Mesh.square(20)
+    lam = rng.standard_normal(mesh.n_vertices)
+    lam[::4] = -0.0
+    lam[1::9] = 0.0
+    out = {}
+    for on in (False, True):
+        kernel_path(on)
+        out[on] = terms_module._lambda_parts(mesh, lam)
+    for a, b in zip(out[False], out[True], strict=True):
+        _same(a, b)
+    lam_hat, lam_minus = out[True]
+    assert np.all(lam_hat[mesh.boundary_vertex_mask] == 0.0)
+    np.testing.assert_array_equal(lam_hat - lam_minus, np.where(mesh.boundary_vertex_mask, 0, lam))
