@@ -25,6 +25,8 @@ __all__ = [
     "cg_update_range",
     "cross_block_dominant",
     "cross_block_dominant_range",
+    "copy_range",
+    "copy_vector",
     "csr_diagonal_range",
     "csr_matvec_range",
     "gs_hybrid_range",
@@ -72,6 +74,25 @@ def csr_matvec_range(lo, hi, indptr, indices, data, x, y):
         for k in range(indptr[i], indptr[i + 1]):
             s += data[k] * x[indices[k]]
         y[i] = s
+
+
+@jit
+def copy_range(lo, hi, src, dst):
+    """``dst[i] = src[i]`` for ``i`` in ``lo .. hi-1`` (the hybrid sweep's copy of x)."""
+    for i in range(lo, hi):
+        dst[i] = src[i]
+
+
+def copy_vector(src, dst) -> None:
+    """``dst[:] = src``; contiguous float64 vectors of 32,768 entries and more in the threads.
+
+    (The size of ``fastmem.linalg.sparse.THREADED_ROWS``: below it one thread copies.)
+    """
+    plain = all(v.dtype == np.float64 and v.ndim == 1 and v.flags.c_contiguous for v in (src, dst))
+    if src.shape[0] < 32768 or not plain or not dst.flags.writeable:
+        dst[...] = src
+    else:
+        parallel_for(copy_range, src.shape[0], src, dst)
 
 
 @jit

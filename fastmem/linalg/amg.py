@@ -30,6 +30,8 @@ from ..kernels.smooth import (
     active_diagonal_range,
     cg_direction_range,
     cg_update_range,
+    copy_range,
+    copy_vector,
     cross_block_dominant,
     csr_diagonal_range,
     csr_matvec_range,
@@ -338,7 +340,7 @@ class HybridGaussSeidel:
 
         threads = min(_par.n_threads(), nb)
         for forward in directions:
-            np.copyto(x_old, x)
+            copy_vector(x, x_old)
             # blocks handed out one at a time (a shared counter): a thread that runs
             # slower (a core the machine has just woken up) takes fewer of them; each
             # block's arithmetic is the same whichever thread sweeps it
@@ -380,6 +382,7 @@ def precompile() -> None:
     masked_rhs_range(0, 2, active, frozen, x)
     active_diagonal_range(0, 2, active, frozen, frozen, x)
     csr_diagonal_range(0, 2, indptr, indices, a.data, x)  # ThreadedCSR.diagonal
+    copy_range(0, 2, x, old)  # the hybrid sweeps' copy of x
 
 
 def _sweeps_read_matrix_at_call(options: dict) -> bool:
@@ -738,9 +741,12 @@ class PCG:
         SPD system matrix.
     rhs : ndarray
     x0 : ndarray
-        Initial guess (copied).
+        Initial guess (copied, unless ``copy=False``).
     precond : callable
         SPD preconditioner ``z = M(r)``.
+    copy : bool
+        False: iterate in ``x0`` itself when it is a float64 array (a start the
+        caller made for this CG and does not use again: no copy of N values).
 
     Attributes
     ----------
@@ -758,12 +764,16 @@ class PCG:
     #: Residual replacements :meth:`solve` tries before it accepts the true residual.
     MAX_REPLACEMENTS = 8
 
-    def __init__(self, matrix, rhs, x0, precond):
+    def __init__(self, matrix, rhs, x0, precond, copy=True):
         self.a = matrix
         self.b = rhs
         self.m = precond
         self.b_norm = float(np.linalg.norm(rhs)) or 1.0
-        self.x = np.array(x0, dtype=np.float64, copy=True)
+        writable = isinstance(x0, np.ndarray) and x0.flags.writeable
+        if copy or not writable:
+            self.x = np.array(x0, dtype=np.float64, copy=True)
+        else:
+            self.x = np.asarray(x0, dtype=np.float64)
         self.iterations = 0
         self.restarts = 0
         self.stuck = False

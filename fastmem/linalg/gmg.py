@@ -39,7 +39,12 @@ import scipy.sparse as sp
 
 from ..kernels import pool as _par
 from ..kernels.mg import MAX_ROW, galerkin_rows, galerkin_values, prolong_add_range, residual_range
-from ..kernels.smooth import cross_block_dominant, csr_matvec_range, gs_hybrid_range
+from ..kernels.smooth import (
+    copy_vector,
+    cross_block_dominant,
+    csr_matvec_range,
+    gs_hybrid_range,
+)
 from .amg import amg_preconditioner, hybrid_blocks
 from .sparse import as_unsigned, read_only, threaded
 
@@ -259,7 +264,7 @@ class _Level:
         if self.old is None:
             self.old = np.empty(self.n)
         old = self.old
-        np.copyto(old, x)
+        copy_vector(x, old)
 
         def one(lo, hi):
             gs_hybrid_range(lo, hi, forward, indptr, indices, data, x, old, b)

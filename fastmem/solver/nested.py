@@ -28,7 +28,7 @@ from ..fem.scene import Scene
 from ..kernels import mg as _kmg
 from ..kernels import pool as _par
 from ..kernels.rows import warm_active_range
-from ..linalg.sparse import THREADED_ROWS, plain_float64, read_only
+from ..linalg.sparse import THREADED_ROWS, plain_float64, read_only, threaded
 from ..mesh.coarsen import coarse_mesh, inside, locate
 from ..mesh.mesh import Mesh
 
@@ -340,6 +340,7 @@ def prolong_triple(fine_scene: Scene, coarse_scene_: Scene, triple, matrix=None)
     ``matrix``: the :func:`interpolation_matrix` of the two meshes, if already built.
     """
     mat = interpolation_matrix(coarse_scene_.mesh, fine_scene.mesh) if matrix is None else matrix
+    mat = threaded(mat)  # large: the products in the kernel threads (scipy's bits)
     u1, u2, lam = (mat @ x for x in triple)
     bnd = fine_scene.mesh.boundary_vertices
     u1[bnd] = fine_scene.boundary_values[bnd]

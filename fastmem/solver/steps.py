@@ -354,7 +354,8 @@ class DecoupledCG:
         st = self.system
         ii = st.interior
         if self.cg_s is None:
-            self.cg_s = PCG(self.a_ii, st.rhs_s, (st.mu1 * u1 + st.mu2 * u2)[ii], self.pre_all)
+            s0 = (st.mu1 * u1 + st.mu2 * u2)[ii]
+            self.cg_s = PCG(self.a_ii, st.rhs_s, s0, self.pre_all, copy=False)
         self.cg_w = None  # the previous gap matrix and CG vectors: free them first
         mat = threaded(gap_matrix(self.a_ii, active))
         changed = int(np.count_nonzero(active != self.setup_active))
@@ -387,7 +388,7 @@ class DecoupledCG:
             self._update_w(mat, active)
         rhs, w0 = self._gap_start(active, u1, u2)
         self.active = active.copy()
-        self.cg_w = PCG(mat, rhs, w0, _WeakCall(self._masked))
+        self.cg_w = PCG(mat, rhs, w0, _WeakCall(self._masked), copy=False)
 
     def _gap_start(self, active, u1, u2):
         """Return the gap CG's right-hand side and start (0 on ``active``)."""

@@ -171,3 +171,25 @@ def test_lambda_parts(kernel_path, rng):
     lam_hat, lam_minus = out[True]
     assert np.all(lam_hat[mesh.boundary_vertex_mask] == 0.0)
     np.testing.assert_array_equal(lam_hat - lam_minus, np.where(mesh.boundary_vertex_mask, 0, lam))
+
+
+def test_cg_started_in_the_callers_vector(rng):
+    """``copy=False``: the CG iterates in the start it was given, with the same iterates."""
+    scene = _scene(n=30)
+    ii = scene.mesh.interior_vertices
+    a = sparse_module.submatrix(scene.stiffness, ii, ii)
+    b, x0 = rng.standard_normal(ii.size), rng.standard_normal(ii.size)
+    mine = x0.copy()
+    start = x0.copy()
+    own = PCG(a, b, mine, lambda r: r / a.diagonal(), copy=False)
+    ref = PCG(a, b, x0, lambda r: r / a.diagonal())
+    assert own.x is mine
+    assert ref.x is not x0
+    for _ in range(5):
+        own.step()
+        ref.step()
+    _same(own.x, ref.x)
+    _same(x0, start)  # the copied start is left as it was
+    frozen = x0.copy()
+    frozen.flags.writeable = False
+    assert PCG(a, b, frozen, lambda r: r, copy=False).x is not frozen  # read-only: copied
