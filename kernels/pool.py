@@ -149,15 +149,23 @@ def run_pieces(fn, pieces, threads: int) -> None:
     run_ranges(worker, [(0, 0)] * threads)
 
 
-def parallel_for(kernel, n: int, *args, grain: int | None = None) -> None:
+def parallel_for(kernel, n: int, *args, grain: int | None = None, pieces: int = 1) -> None:
     """Run the serial kernel ``kernel(lo, hi, *args)`` over ``range(n)`` in chunks.
 
     ``kernel`` must release the GIL (``nogil=True``) and write, for index k,
     only what no other index writes (the contract of a ``prange`` loop).
-    ``grain``: fewest indices per chunk (default :data:`GRAIN`).
+    ``grain``: fewest indices per chunk (default :data:`GRAIN`).  ``pieces``:
+    chunks per thread; above 1 they are handed out one at a time
+    (:func:`run_pieces`), for loops whose indices cost unequal time.
     """
     grain = GRAIN if grain is None else grain
-    run_ranges(lambda lo, hi: kernel(lo, hi, *args), ranges(n, n_threads(), grain))
+    threads = n_threads()
+    if pieces > 1 and threads > 1:
+        run_pieces(
+            lambda lo, hi: kernel(lo, hi, *args), ranges(n, pieces * threads, grain), threads
+        )
+        return
+    run_ranges(lambda lo, hi: kernel(lo, hi, *args), ranges(n, threads, grain))
 
 
 #: fewest elements per thread of :func:`zeros` (smaller arrays: the calling thread alone)

@@ -245,14 +245,17 @@ def _kept_rows(a, n_rows, count, count_args, fill, fill_args, index_dtype):
     """
     indptr, indices = as_unsigned(a.indptr), as_unsigned(a.indices)
     counts = np.empty(n_rows, dtype=indptr.dtype)
-    _par.parallel_for(count, n_rows, indptr, indices, *count_args, counts)
+    # rows cost unequal time (an active row of a gap matrix keeps its diagonal alone):
+    # smaller pieces handed out one at a time
+    _par.parallel_for(count, n_rows, indptr, indices, *count_args, counts, pieces=4)
     new_ptr = np.zeros(n_rows + 1, dtype=a.indptr.dtype)
     np.cumsum(counts, out=new_ptr[1:], dtype=new_ptr.dtype)
     out_indices = np.empty(int(new_ptr[-1]), dtype=index_dtype)
     out_data = np.empty(out_indices.size, dtype=np.float64)
     _par.parallel_for(
-        fill, n_rows, indptr, indices, *fill_args, as_unsigned(new_ptr), out_indices, out_data
-    )
+        fill, n_rows, indptr, indices, *fill_args, as_unsigned(new_ptr), out_indices, out_data,
+        pieces=4,
+    )  # fmt: skip
     return out_data, out_indices, new_ptr
 
 

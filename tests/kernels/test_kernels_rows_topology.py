@@ -5,8 +5,10 @@ instead of the kernels: every topology test runs twice, once with the kernels fo
 and once with the NumPy paths forced, against the same references.
 """
 
+import numba
 import numpy as np
 import pytest
+from fastmem.kernels import pool
 from fastmem.kernels.rows import row_measures
 from fastmem.kernels.topology import edge_topology
 
@@ -261,3 +263,21 @@ def test_kernel_paths_force_the_kernels_and_restore_the_threshold(monkeypatch, t
     calls.clear()
     kt.edge_topology(t, small.n_vertices)
     assert bool(calls) == (topology_path == "kernels")  # the threshold is back
+
+
+@pytest.mark.parametrize("pieces", [1, 4])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_parallel_for_covers_every_index_once(threads, pieces):
+    """Static chunks or dynamic pieces: each index is handed to the kernel exactly once."""
+    seen = np.zeros(100_003, dtype=np.int64)
+
+    def kernel(lo, hi, out):  # (plain Python: the pool only needs a callable)
+        out[lo:hi] += 1
+
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+        pool.parallel_for(kernel, seen.size, seen, grain=1000, pieces=pieces)
+    finally:
+        numba.set_num_threads(old)
+    assert np.all(seen == 1)
