@@ -83,13 +83,13 @@ def copy_range(lo, hi, src, dst):
         dst[i] = src[i]
 
 
-def copy_vector(src, dst) -> None:
-    """``dst[:] = src``; contiguous float64 vectors of 32,768 entries and more in the threads.
+def copy_vector(src, dst, threaded_from) -> None:
+    """``dst[:] = src``, in the threads for contiguous float64 vectors of ``threaded_from`` or more.
 
-    (The size of ``fastmem.linalg.sparse.THREADED_ROWS``: below it one thread copies.)
+    Callers pass ``fastmem.linalg.sparse.THREADED_ROWS``: below it one thread copies.
     """
     plain = all(v.dtype == np.float64 and v.ndim == 1 and v.flags.c_contiguous for v in (src, dst))
-    if src.shape[0] < 32768 or not plain or not dst.flags.writeable:
+    if src.shape[0] < threaded_from or not plain or not dst.flags.writeable:
         dst[...] = src
     else:
         parallel_for(copy_range, src.shape[0], src, dst)

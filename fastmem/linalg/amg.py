@@ -340,7 +340,7 @@ class HybridGaussSeidel:
 
         threads = min(_par.n_threads(), nb)
         for forward in directions:
-            copy_vector(x, x_old)
+            copy_vector(x, x_old, THREADED_ROWS)
             # blocks handed out one at a time (a shared counter): a thread that runs
             # slower (a core the machine has just woken up) takes fewer of them; each
             # block's arithmetic is the same whichever thread sweeps it

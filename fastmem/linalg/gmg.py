@@ -46,7 +46,7 @@ from ..kernels.smooth import (
     gs_hybrid_range,
 )
 from .amg import amg_preconditioner, hybrid_blocks
-from .sparse import as_unsigned, read_only, threaded
+from .sparse import THREADED_ROWS, as_unsigned, read_only, threaded
 
 __all__ = ["COARSE_DENSE", "NestedChain", "NestedMG", "galerkin", "precompile"]
 
@@ -264,7 +264,7 @@ class _Level:
         if self.old is None:
             self.old = np.empty(self.n)
         old = self.old
-        copy_vector(x, old)
+        copy_vector(x, old, THREADED_ROWS)
 
         def one(lo, hi):
             gs_hybrid_range(lo, hi, forward, indptr, indices, data, x, old, b)
