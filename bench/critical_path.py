@@ -27,7 +27,9 @@ the loops whose chunks are unequal or too few (``sites``: the call sites with
 the most time lost to that, ``span - work / T``) and the serial functions: a
 cProfile of one more solve whose clock stands still inside the parallel loops
 (``outside_top``: the largest self times; ``outside_cumulative``: the largest
-cumulative times, which name the phase that spends them).
+cumulative times, which name the phase that spends them; ``profiled_outside_s``
+and ``profiled_wall_s``: that solve's own time outside the loops and its wall
+time, both larger than the repeats' by the profiler's overhead).
 
 Scenes: ``default`` (the default scene on the n x n square, nested iteration
 with the bound) and ``adaptive`` (the adaptive L-shape loop, f = (-1, -1),
@@ -210,11 +212,14 @@ def worker(n, threads, which, repeat):
     scene = _scene(fm, which, n)
     with ChunkClock(profile=True) as clock:
         prof = clock.profile
+        wall0, outside0 = time.perf_counter(), clock.timer()
         prof.enable()
         try:
             fm.solve(scene, **kwargs)
         finally:
             prof.disable()
+        profiled_outside = clock.timer() - outside0
+        profiled_wall = time.perf_counter() - wall0
     st = pstats.Stats(prof).stats
     entries = [
         {
@@ -254,6 +259,9 @@ def worker(n, threads, which, repeat):
         "sites": sites,
         "outside_top": outside_top,
         "outside_cumulative": outside_cumulative,
+        # the profiled solve itself (slower than the repeats: the profiler's overhead)
+        "profiled_wall_s": profiled_wall,
+        "profiled_outside_s": profiled_outside,
     }
     for key in ("serial_s", "parallel_work_s", "outside_s", "span_s", "critical_s"):
         row[key] = med(d[key] for d in reps)
