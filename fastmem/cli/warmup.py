@@ -51,7 +51,7 @@ from ..errors import ParameterError, checked_keywords
 from ..estimators.flux import band_plan, find_patch_classes, flux_norms, reconstruct
 from ..fem.assembly import assemble_stiffness
 from ..fem.scene import Scene
-from ..kernels import assembly, flux, rows, sums, topology
+from ..kernels import assembly, flux, rows, sparsity, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
@@ -438,7 +438,7 @@ def _precompile_masked() -> None:
 
 
 def _precompile_topology(edges: bool = True) -> None:
-    """Compile the mesh-topology kernels (meshes of 65,536 triangles and more).
+    """Compile the mesh-topology kernels (meshes of 65,536 triangles and more), and the pattern's.
 
     Smaller meshes build their topology with NumPy
     (:data:`fastmem.kernels.topology.NUMPY_BELOW`), so the tiny solves never reach
@@ -455,6 +455,8 @@ def _precompile_topology(edges: bool = True) -> None:
         else:  # (Mesh.square would compile the rows kernel of the structured triangles)
             mesh = Mesh(base.vertices.copy(), base.triangles.copy(), validate=False)
         _ = mesh.lumped_mass, mesh.patch_ptr, mesh.patch_triangles
+    # the P1 pattern of a mesh large enough for row blocks (kernels.sparsity)
+    sparsity.precompile_blocks(base.n_vertices, base.edges, np.int32)
 
 
 def _precompile_sums() -> None:
