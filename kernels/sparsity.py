@@ -11,13 +11,17 @@ The edge list of a :class:`~fastmem.mesh.Mesh` is sorted (``p < q`` in each
 edge, the pairs ``(p, q)`` in lexicographic order).  Then row ``a`` is its
 lower part (the ``p`` of the edges ``(p, a)``, met in increasing order in the
 edge list), ``a``, and its upper part (the ``q`` of the edges ``(a, q)``, a run
-of the edge list): already sorted.  The kernel threads build it in blocks of
-rows with no sort and no serial pass (:func:`_sorted_pattern`): the edges are
-bucketed by the block of their ``q`` (counts per edge chunk and block, then
-each chunk writes its edge ids into its slots, in order), and each block
-counts, sums and fills its own rows from its bucket.  An edge list in any
-other order goes the serial way (a counting sort by row, then an insertion
-sort per row).
+of the edge list): already sorted.  With :data:`BLOCK_THREADS` kernel threads
+or more, they build it in blocks of rows with no sort and no serial pass
+(:func:`_sorted_pattern`): the edges are bucketed by the block of their ``q``
+(counts per edge chunk and block, then each chunk writes its edge ids into its
+slots, in order), and each block counts, sums and fills its own rows from its
+bucket.  With fewer threads, or an edge list in another order, one thread
+makes it (a counting sort by row, then an insertion sort per row).  Same
+pattern either way.
+
+:func:`csr_transpose`: the transpose of a CSR matrix in column blocks, for the
+restrictions of the geometric multigrid on many cores.
 """
 
 import numpy as np
@@ -25,7 +29,7 @@ import numpy as np
 from ._jit import jit
 from .pool import n_threads, parallel_for, ranges, run_ranges
 
-__all__ = ["csr_pattern", "position_map", "precompile_blocks"]
+__all__ = ["csr_pattern", "csr_transpose", "position_map", "precompile_blocks"]
 
 
 @jit
@@ -67,6 +71,11 @@ def _fill_rows(edges, fill, indices):
 
 #: fewest edges (and rows) per thread of the sorted edge list's pattern
 PATTERN_GRAIN = 1 << 15
+#: fewest kernel threads for the pattern in row blocks and :func:`csr_transpose` in
+#: column blocks.  With fewer, the serial passes take about as long (pattern at
+#: n = 2048, 4.2M vertices: 0.08-0.10 s either way on one or two threads), and a
+#: first run would compile kernels for nothing (about 1 s for the pattern's).
+BLOCK_THREADS = 4
 
 
 @jit
@@ -99,7 +108,8 @@ def _edge_chunks_count(lo, hi, edges, n_chunks, n, bounds, counts, ustart, bad):
     for k in range(lo, hi):
         e0 = m * k // n_chunks
         e1 = m * (k + 1) // n_chunks
-        own[:] = 0
+        for b in range(n_blocks):  # (loops, not slices: slices cost seconds to compile)
+            own[b] = 0
         ok = True
         prev_p = -1 if e0 == 0 else edges[e0 - 1, 0]
         prev_q = -1 if e0 == 0 else edges[e0 - 1, 1]
@@ -118,7 +128,8 @@ def _edge_chunks_count(lo, hi, edges, n_chunks, n, bounds, counts, ustart, bad):
         if ok and e1 == m:
             for a in range(prev_p + 1, n):
                 ustart[a] = m
-        counts[k, :] = own
+        for b in range(n_blocks):
+            counts[k, b] = own[b]
         bad[k] = 0 if ok else 1
 
 
@@ -130,9 +141,12 @@ def _edge_chunks_bucket(lo, hi, edges, n_chunks, n, bounds, slots, bucket):
     block follow the edge order (chunks in order, each in order).
     """
     m = edges.shape[0]
-    scale = (bounds.shape[0] - 1) / n
+    n_blocks = bounds.shape[0] - 1
+    scale = n_blocks / n
+    at = np.empty(n_blocks, dtype=np.int64)
     for k in range(lo, hi):
-        at = slots[k, :].copy()  # advanced here: rows of slots share cache lines
+        for b in range(n_blocks):  # advanced here: rows of slots share cache lines
+            at[b] = slots[k, b]
         for e in range(m * k // n_chunks, m * (k + 1) // n_chunks):
             b = _block_of(edges[e, 1], bounds, scale)
             bucket[at[b]] = e
@@ -163,6 +177,22 @@ def _block_rows_count(lo, hi, edges, bounds, bstart, bucket, ustart, fill, total
 
 
 @jit
+def _starts(r0, r1, pos, fill, indptr):
+    """Rows ``r0 <= a < r1`` from position ``pos``: ``indptr[a]``, and ``fill[a]``.
+
+    ``fill[a]`` holds the length of row a and becomes its first slot; the last
+    row of the matrix also sets ``indptr[n]``.
+    """
+    for a in range(r0, r1):
+        indptr[a] = pos
+        length = fill[a]
+        fill[a] = pos
+        pos += length
+    if r1 == fill.shape[0]:
+        indptr[r1] = pos
+
+
+@jit
 def _block_rows_fill(lo, hi, edges, bounds, bstart, bucket, ustart, offsets, fill, indptr, indices):
     """Row blocks ``lo <= b < hi``: ``indptr`` of their rows, then the sorted rows.
 
@@ -170,18 +200,10 @@ def _block_rows_fill(lo, hi, edges, bounds, bstart, bucket, ustart, offsets, fil
     lengths, from :func:`_block_rows_count`) becomes the next free slot of row a.
     """
     direct = bucket.shape[0] == 0
-    n = fill.shape[0]
     for b in range(lo, hi):
         r0 = bounds[b]
         r1 = bounds[b + 1]
-        pos = offsets[b]
-        for a in range(r0, r1):
-            indptr[a] = pos
-            length = fill[a]
-            fill[a] = pos
-            pos += length
-        if r1 == n:
-            indptr[n] = pos
+        _starts(r0, r1, offsets[b], fill, indptr)
         for j in range(bstart[b], bstart[b + 1]):  # lower parts, p increasing in each row
             e = j if direct else bucket[j]
             q = edges[e, 1]
@@ -253,11 +275,11 @@ def _sorted_pattern(n, edges, index_dtype, threads, grain=None):
 def precompile_blocks(n, edges, index_dtype) -> None:
     """Compile (or load) the kernels of the pattern in blocks, for the types of ``edges``.
 
-    Meshes of 2 :data:`PATTERN_GRAIN` vertices and more, with two threads or more,
-    split the rows into blocks (the bucket pass runs only then): a tiny mesh's
-    edges in blocks of one row take the same path.
+    With :data:`BLOCK_THREADS` kernel threads or more (else nothing to compile): a
+    tiny mesh's edges in blocks of one row take the path of a large mesh.
     """
-    _sorted_pattern(int(n), edges, index_dtype, 2, grain=1)
+    if n_threads() >= BLOCK_THREADS:
+        _sorted_pattern(int(n), edges, index_dtype, 2, grain=1)
 
 
 def csr_pattern(n, edges, index_dtype):
@@ -278,8 +300,14 @@ def csr_pattern(n, edges, index_dtype):
     indptr : ndarray, shape (n + 1,)
     indices : ndarray, shape (n + 2 E,)
     """
-    if edges.dtype in (np.int32, np.int64) and edges.flags.c_contiguous and edges.ndim == 2:
-        out = _sorted_pattern(int(n), edges, index_dtype, n_threads())
+    threads = n_threads()
+    if (
+        threads >= BLOCK_THREADS
+        and edges.dtype in (np.int32, np.int64)
+        and edges.flags.c_contiguous
+        and edges.ndim == 2
+    ):
+        out = _sorted_pattern(int(n), edges, index_dtype, threads)
         if out is not None:
             return out
     counts = np.ones(n, dtype=np.int64)  # the diagonal
@@ -327,3 +355,165 @@ def _position_map_range(lo_t, hi_t, triangles, indptr, indices, offsets):
                     else:
                         b = mid
                 offsets[t, i, j] = a - lo
+
+
+#: row chunks per thread of :func:`csr_transpose` (finer chunks: tighter column spans)
+TRANSPOSE_CHUNKS = 4
+
+
+@jit
+def _chunk_column_span(lo, hi, indptr, indices, n_chunks, n_cols, cmin, cmax):
+    """Row chunks ``lo <= k < hi``: the smallest and largest column of their entries.
+
+    Chunk k holds the rows ``m k / K <= i < m (k + 1) / K`` (``K = n_chunks``);
+    an empty chunk gets ``cmin = n_cols``, ``cmax = -1``.
+    """
+    m = indptr.shape[0] - 1
+    for k in range(lo, hi):
+        c0 = n_cols
+        c1 = -1
+        for j in range(indptr[m * k // n_chunks], indptr[m * (k + 1) // n_chunks]):
+            c = indices[j]
+            c0 = min(c0, c)
+            c1 = max(c1, c)
+        cmin[k] = c0
+        cmax[k] = c1
+
+
+@jit
+def _transpose_count(lo, hi, indptr, indices, n_chunks, cmin, cmax, bounds, fill, totals):
+    """Column blocks ``lo <= b < hi``: the entries of each of their columns, and the block's sum.
+
+    Only the row chunks whose column span meets the block are read (for the
+    interpolation between nested meshes, a few per block).
+    """
+    m = indptr.shape[0] - 1
+    for b in range(lo, hi):
+        c0 = bounds[b]
+        c1 = bounds[b + 1]
+        for c in range(c0, c1):
+            fill[c] = 0
+        for k in range(n_chunks):
+            if cmax[k] < c0 or cmin[k] >= c1:
+                continue
+            for j in range(indptr[m * k // n_chunks], indptr[m * (k + 1) // n_chunks]):
+                c = indices[j]
+                if c0 <= c and c < c1:
+                    fill[c] += 1
+        t = 0
+        for c in range(c0, c1):
+            t += fill[c]
+        totals[b] = t
+
+
+@jit
+def _transpose_fill(
+    lo, hi, indptr, indices, data, n_chunks, cmin, cmax, bounds, offsets, fill, t_indptr,
+    t_indices, t_data,
+):  # fmt: skip
+    """Column blocks ``lo <= b < hi``: their rows of the transpose, in increasing row order.
+
+    ``offsets[b]``: the entries of the columns before block b; ``fill[c]`` (the
+    counts of :func:`_transpose_count`) becomes the next free slot of column c.
+    """
+    m = indptr.shape[0] - 1
+    for b in range(lo, hi):
+        c0 = bounds[b]
+        c1 = bounds[b + 1]
+        _starts(c0, c1, offsets[b], fill, t_indptr)
+        for k in range(n_chunks):
+            if cmax[k] < c0 or cmin[k] >= c1:
+                continue
+            for i in range(m * k // n_chunks, m * (k + 1) // n_chunks):
+                for j in range(indptr[i], indptr[i + 1]):
+                    c = indices[j]
+                    if c0 <= c and c < c1:
+                        f = fill[c]
+                        t_indices[f] = i
+                        t_data[f] = data[j]
+                        fill[c] = f + 1
+
+
+def _unsigned_type(dtype):
+    return np.uint32 if np.dtype(dtype) == np.int32 else np.uint64
+
+
+def _unsigned(index):
+    """Return the same non-negative indices as unsigned integers (a view; unsigned stays)."""
+    if index.dtype.kind == "u":
+        return index
+    return index.view(_unsigned_type(index.dtype))
+
+
+def csr_transpose(indptr, indices, data, n_cols, index_dtype, threads=None, grain=None):
+    """Return the CSR arrays ``(indptr, indices, data)`` of the transpose of a CSR matrix.
+
+    The matrix is ``m x n_cols``, any column order within a row; its transpose
+    is ``n_cols x m`` with sorted rows, the entries of scipy's ``csr_tocsc``
+    (the same values in the same order), index arrays of ``index_dtype``.  In
+    the kernel threads, by blocks of columns: each block reads the row chunks
+    whose columns reach it (:data:`TRANSPOSE_CHUNKS` per thread), counts,
+    sums and fills its rows in increasing row order.  No buffer beyond the
+    output and one cursor per column.  For a matrix whose rows' columns follow
+    the rows (the interpolation between nested meshes) each block reads about
+    its share of the entries; for one without that locality every block reads
+    them all (correct, not faster).  ``threads``: default
+    :func:`fastmem.kernels.pool.n_threads`; ``grain``: fewest columns per block
+    and rows per chunk (default :data:`PATTERN_GRAIN`).  Callers use it from
+    :data:`BLOCK_THREADS` threads on (scipy's serial transpose is as fast below).
+    """
+    threads = n_threads() if threads is None else max(1, int(threads))
+    grain = PATTERN_GRAIN if grain is None else grain
+    # unsigned views: Numba then indexes without the test for negative indices
+    indptr, indices = _unsigned(indptr), _unsigned(indices)
+    m = indptr.shape[0] - 1
+    n = int(n_cols)
+    nnz = int(indptr[m])
+    blocks = ranges(n, threads, grain)
+    n_blocks = len(blocks)
+    n_chunks = 1 if n_blocks == 1 else len(ranges(m, TRANSPOSE_CHUNKS * threads, grain))
+    bounds = np.array([lo for lo, _ in blocks] + [n], dtype=np.int64)
+    cmin = np.empty(n_chunks, dtype=np.int64)
+    cmax = np.empty(n_chunks, dtype=np.int64)
+    if n_blocks == 1:  # one block reads everything: no spans needed
+        cmin[:] = 0
+        cmax[:] = n
+    else:
+        run_ranges(
+            lambda lo, hi: _chunk_column_span(lo, hi, indptr, indices, n_chunks, n, cmin, cmax),
+            ranges(n_chunks, threads, 1),
+        )
+    fill = np.empty(n, dtype=index_dtype).view(_unsigned_type(index_dtype))
+    totals = np.empty(n_blocks, dtype=np.int64)
+    every = [(b, b + 1) for b in range(n_blocks)]
+    run_ranges(
+        lambda lo, hi: _transpose_count(
+            lo, hi, indptr, indices, n_chunks, cmin, cmax, bounds, fill, totals
+        ),
+        every,
+    )
+    offsets = np.zeros(n_blocks, dtype=np.int64)
+    np.cumsum(totals[:-1], out=offsets[1:])
+    t_indptr = np.empty(n + 1, dtype=index_dtype)
+    t_indices = np.empty(nnz, dtype=index_dtype)
+    t_data = np.empty(nnz, dtype=data.dtype)
+    run_ranges(
+        lambda lo, hi: _transpose_fill(
+            lo,
+            hi,
+            indptr,
+            indices,
+            data,
+            n_chunks,
+            cmin,
+            cmax,
+            bounds,
+            offsets,
+            fill,
+            t_indptr,
+            t_indices,
+            t_data,
+        ),  # fmt: skip
+        every,
+    )
+    return t_indptr, t_indices, t_data

@@ -126,12 +126,9 @@ def _colors(mesh):
     cache = mesh._cache
     if "vertex_colors" not in cache:
         indptr, indices, _ = csr_structure(mesh)
-        colors, n_colors = _kf.color_vertices(mesh.n_vertices, indptr, indices)
+        _, n_colors, order, ptr = _kf.color_vertices(mesh.n_vertices, indptr, indices)
         if n_colors >= 64:
             raise DataError(f"vertex colouring needs {n_colors} colours; at most 63 supported")
-        order = np.argsort(colors, kind="stable")
-        ptr = np.zeros(n_colors + 1, dtype=np.int64)
-        np.cumsum(np.bincount(colors, minlength=n_colors), out=ptr[1:])
         cache["vertex_colors"] = (order, ptr)
     return cache["vertex_colors"]
 

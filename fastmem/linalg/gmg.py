@@ -38,6 +38,7 @@ import scipy.linalg
 import scipy.sparse as sp
 
 from ..kernels import pool as _par
+from ..kernels import sparsity as _sparsity
 from ..kernels.mg import MAX_ROW, galerkin_rows, galerkin_values, prolong_add_range, residual_range
 from ..kernels.smooth import (
     copy_vector,
@@ -150,6 +151,19 @@ def galerkin_into(c, a, p, r, keep, rows=None) -> None:
     )
 
 
+def _transpose(p) -> sp.csr_matrix:
+    """``P^T``, canonical (:func:`restriction`)."""
+    if p.shape[0] < THREADED_ROWS or _par.n_threads() < _sparsity.BLOCK_THREADS:
+        return _canonical(p.T.tocsr())
+    p = _canonical(p)
+    m, n = p.shape
+    dt = p.indices.dtype  # canonical: int32 when the entries and both sizes allow
+    indptr, indices, data = _sparsity.csr_transpose(p.indptr, p.indices, p.data, n, dt)
+    out = sp.csr_matrix((data, indices, indptr), shape=(n, m), copy=False)
+    out.has_sorted_indices = True
+    return out
+
+
 def restriction(p) -> sp.csr_matrix:
     """Return ``P^T`` as a canonical CSR matrix, formed once per interpolation ``p``.
 
@@ -158,10 +172,15 @@ def restriction(p) -> sp.csr_matrix:
     formed L (L - 1) / 2 transposes instead of L - 1 (scipy's serial
     ``csr_tocsc``: 0.25 s of the default solve at n = 2048).  ``p`` must not be
     changed in place afterwards (no fastmem code changes an interpolation).
+
+    With :data:`~fastmem.kernels.sparsity.BLOCK_THREADS` kernel threads or more,
+    from :data:`~fastmem.linalg.sparse.THREADED_ROWS` rows on, the transpose is
+    formed in the kernel threads (:func:`fastmem.kernels.sparsity.csr_transpose`:
+    the same matrix, entry for entry); below, by scipy.
     """
     r = getattr(p, "_fastmem_restriction", None)
     if r is None or r.shape != (p.shape[1], p.shape[0]):
-        r = _canonical(p.T.tocsr())
+        r = _transpose(p)
         try:
             p._fastmem_restriction = r
         except AttributeError:  # pragma: no cover - a matrix type without attributes
@@ -488,7 +507,9 @@ def precompile() -> None:
 
     On a 1D chain of three levels (7, 3 and 1 interior unknowns): the unmasked
     and the masked hierarchy, an update, one cycle; :func:`fastmem.warm_up`'s
-    tiny problem is too small for nested iteration.
+    tiny problem is too small for nested iteration.  With
+    :data:`~fastmem.kernels.sparsity.BLOCK_THREADS` threads or more, the
+    transpose of the restrictions too.
     """
 
     def laplacian(n):
@@ -512,3 +533,7 @@ def precompile() -> None:
     active[6] = True
     mg.update(a, active)
     mg(np.ones(7))
+    if _par.n_threads() >= _sparsity.BLOCK_THREADS:  # the restrictions of large levels
+        p = _canonical(interpolation(3))
+        for threads in (1, 2):  # one column block, and several (the column spans)
+            _sparsity.csr_transpose(p.indptr, p.indices, p.data, 3, p.indices.dtype, threads, 1)

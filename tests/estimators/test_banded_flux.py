@@ -15,6 +15,7 @@ from fastmem.kernels import flux as kf
 import fastmem as fm
 import fastmem.estimators.bound as bound
 import fastmem.estimators.flux as flux
+from fastmem.mesh import csr_structure, refine_marked
 from fastmem.problems import Manufactured
 
 
@@ -218,3 +219,24 @@ def test_obstacle_flux_terms_bit_for_bit(monkeypatch, which):
     assert np.array_equal(banded, stored)
     assert stored.max() > 0.0
     assert not mesh._cache["flux_window"].any()
+
+
+@pytest.mark.parametrize("refined", [False, True])
+def test_colour_order_is_the_stable_sort_of_the_colours(refined):
+    """color_vertices' counting sort: NumPy's stable argsort of the colours; a proper colouring."""
+
+    mesh = fm.Mesh.lshape(32)
+    if refined:
+        marked = np.zeros(mesh.n_triangles, dtype=bool)
+        marked[::3] = True
+        mesh = refine_marked(mesh, marked)[0]
+    indptr, indices, _ = csr_structure(mesh)
+    colors, n_colors, order, ptr = kf.color_vertices(mesh.n_vertices, indptr, indices)
+    np.testing.assert_array_equal(order, np.argsort(colors, kind="stable"))
+    np.testing.assert_array_equal(np.diff(ptr), np.bincount(colors, minlength=n_colors))
+    assert ptr[0] == 0
+    assert ptr[-1] == mesh.n_vertices
+    assert colors.max() == n_colors - 1
+    t = mesh.triangles  # no two vertices of a triangle share a colour
+    c = colors[t]
+    assert np.all((c[:, 0] != c[:, 1]) & (c[:, 1] != c[:, 2]) & (c[:, 0] != c[:, 2]))

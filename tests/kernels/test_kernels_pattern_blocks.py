@@ -87,3 +87,81 @@ def test_block_of_finds_the_block_of_ranges(n, blocks):
     got = np.array([ks._block_of(int(x), bounds, scale) for x in q])
     want = np.searchsorted(bounds, q, side="right") - 1
     np.testing.assert_array_equal(got, want)
+
+
+def test_csr_pattern_takes_the_blocks_from_block_threads(monkeypatch):
+    """csr_pattern: the row blocks from BLOCK_THREADS threads on, the serial path below; same."""
+    mesh = _refined()
+    n, edges = mesh.n_vertices, mesh.edges
+    want = _serial(n, edges, np.int32)
+    calls = []
+    real = ks._sorted_pattern
+    monkeypatch.setattr(ks, "_sorted_pattern", lambda *a, **k: calls.append(1) or real(*a, **k))
+    monkeypatch.setattr(ks, "PATTERN_GRAIN", 64)
+    for limit in (1, 10**6):
+        monkeypatch.setattr(ks, "BLOCK_THREADS", limit)
+        got = ks.csr_pattern(n, edges, np.int32)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert len(calls) == 1  # only with BLOCK_THREADS = 1
+
+
+def _unsorted_rows(a):
+    """``a`` with the entries of each row in reversed order."""
+    b = a.copy()
+    for i in range(b.shape[0]):
+        s, e = b.indptr[i], b.indptr[i + 1]
+        b.indices[s:e] = b.indices[s:e][::-1]
+        b.data[s:e] = b.data[s:e][::-1]
+    b.has_sorted_indices = False
+    return b
+
+
+def _matrices():
+    from fastmem.solver.nested import interpolation_matrix
+
+    p = interpolation_matrix(fm.Mesh.lshape(16), fm.Mesh.lshape(32)).tocsr()
+    yield p  # columns follow the rows: each column block reads a few row chunks
+    yield sp.random(300, 200, 0.03, format="csr", random_state=2)  # no locality
+    yield _unsorted_rows(sp.random(120, 90, 0.1, format="csr", random_state=3))
+    yield sp.csr_matrix((6, 9))  # no entries
+    yield sp.random(1, 70, 0.5, format="csr", random_state=4)
+    yield sp.random(70, 1, 0.5, format="csr", random_state=5)
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64])
+def test_transpose_is_scipys_entry_for_entry(dtype):
+    """csr_transpose in any number of column blocks and row chunks: scipy's csr_tocsc."""
+    for a in _matrices():
+        ref = a.T.tocsr()  # scipy's transpose: sorted rows
+        for threads in (1, 2, 3, 16):
+            for grain in (1, 4, None):
+                ip, ix, d = ks.csr_transpose(
+                    a.indptr, a.indices, a.data, a.shape[1], dtype, threads, grain
+                )
+                assert ip.dtype == ix.dtype == dtype
+                np.testing.assert_array_equal(ip, ref.indptr)
+                np.testing.assert_array_equal(ix, ref.indices)
+                np.testing.assert_array_equal(d, ref.data)
+
+
+def test_restriction_in_the_kernel_threads_is_scipys(monkeypatch):
+    """gmg.restriction with the kernel path forced: the matrix scipy's transpose gives."""
+    from fastmem.linalg import gmg
+    from fastmem.solver.nested import interpolation_matrix
+
+    p = interpolation_matrix(fm.Mesh.square(24), fm.Mesh.square(48)).tocsr()
+    want = gmg.restriction(p.copy())  # scipy (small matrix, or few threads)
+    monkeypatch.setattr(gmg, "THREADED_ROWS", 0)
+    monkeypatch.setattr(ks, "BLOCK_THREADS", 1)
+    monkeypatch.setattr(ks, "PATTERN_GRAIN", 50)
+    calls = []
+    real = ks.csr_transpose
+    monkeypatch.setattr(ks, "csr_transpose", lambda *a, **k: calls.append(1) or real(*a, **k))
+    got = gmg.restriction(p.copy())
+    assert calls  # the kernel path
+    assert got.has_sorted_indices
+    assert got.indices.dtype == want.indices.dtype == np.int32
+    np.testing.assert_array_equal(got.indptr, want.indptr)
+    np.testing.assert_array_equal(got.indices, want.indices)
+    np.testing.assert_array_equal(got.data, want.data)
