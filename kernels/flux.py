@@ -1779,6 +1779,10 @@ PATCH_GRAIN = 256
 #: 1: one fixed chunk per thread
 PATCH_PIECES = 16
 TRIANGLE_GRAIN = 4096
+#: pieces per thread of a band's completed triangles (:func:`flux_norms_banded`), handed
+#: out dynamically: in one chunk per thread, the slowest of 16 chunks made the pass
+#: take twice its share (``bench.critical_path``, n = 2048, 16 threads)
+FINISH_PIECES = 4
 
 
 #: Called, when set, before the patch kernel first runs (then cleared by its
@@ -2267,7 +2271,8 @@ def flux_norms_banded(
     (colour by colour within a band, threads as in :func:`reconstruct_colored`); each
     writes its own row of each of its triangles in a ring of ``3 ring`` rows (the patch
     kernels' ``slots`` 3).  When a band is done, its completed triangles are summed
-    (:func:`_band_finish`, in parallel), their norms written and their rows cleared.
+    (:func:`_band_finish`, in parallel, :data:`FINISH_PIECES` pieces per thread), their
+    norms written and their rows cleared.
     The ring holds 48 doubles per live triangle, against 16 per triangle of the
     mesh for the stored fluxes; a mesh whose patches span far apart triangle numbers
     gives a ring as large as the mesh (the caller then stores the fluxes instead).
@@ -2293,7 +2298,6 @@ def flux_norms_banded(
             if hi > lo:
                 run(window, int(ring), 3, lo, hi)
         t0, t1 = int(lows[b]), int(lows[b + 1])
-        _par.run_ranges(
-            finish, [(t0 + a, t0 + c) for a, c in _par.ranges(t1 - t0, threads, TRIANGLE_GRAIN)]
-        )
+        pieces = _par.ranges(t1 - t0, FINISH_PIECES * threads, TRIANGLE_GRAIN)
+        _par.run_pieces(finish, [(t0 + a, t0 + c) for a, c in pieces], threads)
     return norms, window
