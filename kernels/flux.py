@@ -82,12 +82,14 @@ import numpy as np
 from . import pool as _par
 from ._jit import jit
 from .rt1 import _flip_pattern, rt1_dofs_to_coefficients, rt1_local_xy
+from .sparsity import BLOCK_THREADS
 
 __all__ = [
     "classes_compiled",
     "color_vertices",
     "flux_estimators",
     "patch_classes",
+    "precompile_grouping",
     "reconstruct_colored",
     "sweep_order",
 ]
@@ -1643,6 +1645,129 @@ def _group_hashes(hashes, rep):
 
 
 @jit
+def _chunk_firsts(lo, hi, hashes, n_chunks, firsts, n_first):
+    """Chunks ``lo <= k < hi`` of ``hashes``: the first vertex of each hash met in the chunk.
+
+    Chunk k holds ``N k / K <= a < N (k + 1) / K``; its first vertices, in
+    increasing order, go to ``firsts[N k / K:]`` and their number to ``n_first[k]``.
+    Open addressing as in :func:`_group_hashes`, one table per chunk.
+    """
+    n = hashes.shape[0]
+    for k in range(lo, hi):
+        a0 = n * k // n_chunks
+        a1 = n * (k + 1) // n_chunks
+        size = 1024
+        table = np.zeros(size, dtype=np.uint64)
+        full = np.zeros(size, dtype=np.bool_)
+        used = 0
+        for a in range(a0, a1):
+            if 2 * used >= size:
+                old_table, old_full = table, full
+                size *= 2
+                table = np.zeros(size, dtype=np.uint64)
+                full = np.zeros(size, dtype=np.bool_)
+                for j in range(old_full.shape[0]):
+                    if old_full[j]:
+                        s = np.int64(old_table[j] & np.uint64(size - 1))
+                        while full[s]:
+                            s = (s + 1) & (size - 1)
+                        full[s] = True
+                        table[s] = old_table[j]
+            h = hashes[a]
+            s = np.int64(h & np.uint64(size - 1))
+            while full[s] and table[s] != h:
+                s = (s + 1) & (size - 1)
+            if not full[s]:
+                full[s] = True
+                table[s] = h
+                firsts[a0 + used] = a
+                used += 1
+        n_first[k] = used
+
+
+@jit
+def _merge_firsts(hashes, firsts, n_chunks, n_first):
+    """Return the table of :func:`_group_hashes` from the chunks' first vertices, in order.
+
+    Returns ``(table_hash, table_rep, used)``: a hash's first vertex in the whole
+    array is its first in the first chunk that has it.
+    """
+    n = hashes.shape[0]
+    total = 0
+    for k in range(n_chunks):
+        total += n_first[k]
+    size = 1024
+    while size < 2 * total + 2:
+        size *= 2
+    table_hash = np.zeros(size, dtype=np.uint64)
+    table_rep = np.full(size, -1, dtype=np.int64)
+    used = 0
+    for k in range(n_chunks):
+        a0 = n * k // n_chunks
+        for j in range(a0, a0 + n_first[k]):
+            a = firsts[j]
+            h = hashes[a]
+            s = np.int64(h & np.uint64(size - 1))
+            while table_rep[s] >= 0 and table_hash[s] != h:
+                s = (s + 1) & (size - 1)
+            if table_rep[s] < 0:
+                table_rep[s] = a
+                table_hash[s] = h
+                used += 1
+    return table_hash, table_rep, used
+
+
+@jit
+def _lookup_range(lo, hi, hashes, table_hash, table_rep, rep):
+    """``rep[a]`` for ``lo <= a < hi``: the first vertex of a's hash, from the merged table."""
+    mask = np.uint64(table_hash.shape[0] - 1)
+    size = table_hash.shape[0]
+    for a in range(lo, hi):
+        h = hashes[a]
+        s = np.int64(h & mask)
+        while table_hash[s] != h or table_rep[s] < 0:
+            s = (s + 1) & (size - 1)
+        rep[a] = table_rep[s]
+
+
+def _group_hashes_threaded(hashes, rep, threads, grain=None):
+    """Return :func:`_group_hashes` (the same ``rep`` and count), in the kernel threads.
+
+    From :data:`~fastmem.kernels.sparsity.BLOCK_THREADS` threads on (below, the
+    serial kernel, and nothing more to compile): each chunk finds the first vertex
+    of each of its hashes, one thread merges them in chunk order (a few dozen per
+    chunk on a structured mesh), and the chunks look their vertices up.
+    """
+    n = hashes.shape[0]
+    chunks = _par.ranges(n, threads, TRIANGLE_GRAIN if grain is None else grain)
+    if threads < BLOCK_THREADS or len(chunks) == 1:
+        return _group_hashes(hashes, rep)
+    n_chunks = len(chunks)
+    firsts = np.empty(n, dtype=np.int64)
+    n_first = np.empty(n_chunks, dtype=np.int64)
+    _par.run_ranges(
+        lambda lo, hi: _chunk_firsts(lo, hi, hashes, n_chunks, firsts, n_first),
+        [(k, k + 1) for k in range(n_chunks)],
+    )
+    table_hash, table_rep, used = _merge_firsts(hashes, firsts, n_chunks, n_first)
+    _par.run_ranges(
+        lambda lo, hi: _lookup_range(lo, hi, hashes, table_hash, table_rep, rep), chunks
+    )
+    return used
+
+
+def precompile_grouping() -> None:
+    """Compile (or load) the threaded grouping of the patch hashes, with BLOCK_THREADS or more.
+
+    :func:`fastmem.warm_up`'s meshes are too small for its chunks: here eight
+    hashes in four chunks.  Nothing to compile with fewer threads.
+    """
+    if _par.n_threads() >= BLOCK_THREADS:
+        hashes = np.array([5, 7, 5, 9, 7, 7, 11, 5], dtype=np.uint64)
+        _group_hashes_threaded(hashes, np.empty(8, dtype=np.int64), BLOCK_THREADS, grain=1)
+
+
+@jit
 def _class_keys(geo, max_nt, reps, keys, lengths):
     """Write the keys of the class representatives ``reps`` (one row each)."""
     edge_ids = np.empty(3 * max_nt, dtype=np.int64)
@@ -1731,7 +1856,7 @@ def patch_classes(geo, max_nt, n_threads):
     chunks = _par.ranges(n, threads, TRIANGLE_GRAIN)
     _par.run_ranges(functools.partial(_patch_hash_range, *args, 1, hashes, n_e), chunks)
     rep = np.empty(n, dtype=np.int64)
-    distinct = _group_hashes(hashes, rep)
+    distinct = _group_hashes_threaded(hashes, rep, threads)
     hashes = None
     if 2 * distinct > n:  # mostly patches of their own (coordinates not dyadic): no classes
         return None

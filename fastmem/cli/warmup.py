@@ -493,6 +493,7 @@ def _precompile_classes() -> None:
     """
     mesh = Mesh.square(16)
     mesh._cache["patch_classes"] = find_patch_classes(mesh)
+    _kflux.precompile_grouping()  # (their hashes grouped in chunks, with many threads)
     order = np.arange(mesh.n_vertices)  # the sweep order of such meshes (one colour here)
     _kflux.sweep_order(
         order, np.array([0, order.size]), mesh.patch_ptr, mesh.patch_triangles, mesh.n_triangles

@@ -1,8 +1,11 @@
-"""The P1 pattern built in row blocks (kernels.sparsity) against the serial path and scipy."""
+"""The passes of many threads, against their serial versions: the P1 pattern in row blocks,
+the transpose in column blocks (kernels.sparsity), the patch hashes grouped in chunks
+(kernels.flux)."""
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from fastmem.kernels import flux as kf
 from fastmem.kernels import sparsity as ks
 
 import fastmem as fm
@@ -165,3 +168,54 @@ def test_restriction_in_the_kernel_threads_is_scipys(monkeypatch):
     np.testing.assert_array_equal(got.indptr, want.indptr)
     np.testing.assert_array_equal(got.indices, want.indices)
     np.testing.assert_array_equal(got.data, want.data)
+
+
+def _hash_cases():
+    rng = np.random.default_rng(7)
+    mix = np.uint64(0x9E3779B97F4A7C15)
+    yield rng.integers(0, 40, 50_000).astype(np.uint64) * mix  # a structured mesh: few
+    yield rng.integers(0, 2**63, 30_000, dtype=np.uint64)  # all distinct: tables grow
+    yield rng.integers(0, 3000, 40_000).astype(np.uint64) * mix
+    yield np.zeros(5000, dtype=np.uint64)  # one hash (0, the empty slot's value)
+    yield np.array([3, 1, 3, 3, 2, 1], dtype=np.uint64)
+
+
+def test_grouped_hashes_in_chunks_are_the_serial_ones():
+    """_group_hashes_threaded: the serial kernel's first vertices and count, any chunking."""
+    for hashes in _hash_cases():
+        want = np.empty(hashes.size, dtype=np.int64)
+        distinct = kf._group_hashes(hashes, want)
+        assert distinct == np.unique(hashes).size
+        for threads in (kf.BLOCK_THREADS, 7, 64):
+            for grain in (1, 1000, None):
+                got = np.empty(hashes.size, dtype=np.int64)
+                assert kf._group_hashes_threaded(hashes, got, threads, grain) == distinct
+                np.testing.assert_array_equal(got, want)
+        first = {}
+        for a, h in enumerate(hashes.tolist()):  # the definition, on the last case
+            first.setdefault(h, a)
+        np.testing.assert_array_equal(want, [first[h] for h in hashes.tolist()])
+
+
+def test_patch_classes_with_many_threads_are_the_same(monkeypatch):
+    """patch_classes with the chunked grouping: the classes of the serial grouping."""
+    mesh = fm.Mesh.square(96)
+    from fastmem.estimators.flux import patch_arrays
+
+    geo = patch_arrays(mesh)
+    max_nt = int(np.diff(mesh.patch_ptr).max())
+    monkeypatch.setattr(kf, "CLASS_SAMPLE", 64)
+    want = kf.patch_classes(geo, max_nt, 1)
+    calls = []
+    real = kf._chunk_firsts
+    monkeypatch.setattr(kf, "_chunk_firsts", lambda *a: calls.append(1) or real(*a))
+    got = kf.patch_classes(geo, max_nt, 16)
+    assert calls  # the chunked grouping ran
+    assert want is not None
+    cls, reps, cint, cflt, coff = got
+    np.testing.assert_array_equal(cls, want[0])
+    np.testing.assert_array_equal(reps, want[1])
+    np.testing.assert_array_equal(cint, want[2])
+    assert cflt.shape == want[3].shape  # the storage, filled on first use
+    np.testing.assert_array_equal(coff, want[4])
+    assert (cls >= 0).mean() > 0.9  # classes cover the square
