@@ -228,6 +228,7 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
 def test_critical_path_adds_up(quick):
     """The probed solve: the same η, its time split into loops and the rest, spans in range."""
     d = quick("critical_path")
+    assert [row["scene"] for row in d["rows"]] == ["default", "estimate"]
     for row in d["rows"]:
         threads = row["threads"]
         assert row["same_eta"], row["scene"]
