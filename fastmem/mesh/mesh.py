@@ -392,7 +392,19 @@ class Mesh:
     def min_height(self) -> float:
         """Smallest triangle height ``min_K 2|K| / h_K`` (computed once)."""
         if "min_height" not in self._cache:
-            self._cache["min_height"] = float(np.min(2.0 * self.areas / self.diameters))
+            # in blocks through one small buffer: the same products and quotients as
+            # ``np.min(2.0 * areas / diameters)`` without two temporaries of M doubles
+            # (0.05-0.12 s of a default solve at n = 2048, most of it their page faults)
+            areas, diameters = self.areas, self.diameters
+            block = 1 << 16
+            buf = np.empty(min(block, areas.size))
+            lows = np.empty(-(-areas.size // block))  # each block's minimum (NaN stays NaN)
+            for k, start in enumerate(range(0, areas.size, block)):
+                part = buf[: min(block, areas.size - start)]
+                np.multiply(areas[start : start + block], 2.0, out=part)
+                np.divide(part, diameters[start : start + block], out=part)
+                lows[k] = part.min()
+            self._cache["min_height"] = float(lows.min())
         return self._cache["min_height"]
 
     @property
