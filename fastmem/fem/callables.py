@@ -84,13 +84,6 @@ def _hint_parallel(name: str) -> None:
         )
 
 
-def _moments_block(fw, bary, areas) -> np.ndarray:
-    nq = bary.shape[0]
-    outer = (bary[:, :, None] * bary[:, None, :]).reshape(nq, 9)
-    mom = (fw @ outer) * areas[:, None]
-    return mom.reshape(-1, 3, 3)
-
-
 def callable_integrals(mesh, f, degree, name="f", want_all=False, parallel=False) -> dict:
     """One blocked pass of the callable ``f(x, y)`` over the points of the rule of ``degree``.
 
@@ -120,23 +113,16 @@ def callable_integrals(mesh, f, degree, name="f", want_all=False, parallel=False
         mom = np.empty((m, 3, 3))
         norm = np.empty(m)  # ||f - Pi_K f||_K
 
+    # one signature of the kernel: writable C arrays, empty moments when not wanted
+    bary_c, w_c = np.array(bary, dtype=np.float64), np.array(w, dtype=np.float64)
+    outer = (bary_c[:, :, None] * bary_c[:, None, :]).reshape(-1, 9)
+    areas = np.ascontiguousarray(mesh.areas, dtype=np.float64)
+    if not want_all:
+        mom, norm = np.empty((0, 3, 3)), np.empty(0)
+
     def integrate(fv, start, stop):
-        fw = fv * w
-        avg = fw @ bary  # (m_b, 3): (f, phi_j)_K / |K|
-        areas = mesh.areas[start:stop]
-        local[start:stop] = avg * areas[:, None]
-        if want_all:
-            mom[start:stop] = _moments_block(fw, bary, areas)
-            # L2(K) projection onto P1: M_K^{-1} = (3/|K|) [[3,-1,-1],[-1,3,-1],[-1,-1,3]]
-            # => coefficients c = 12 avg - 3 sum(avg); the oscillation is summed as
-            # squares of f - Pi_K f at the points (free of cancellation, never negative)
-            # (in units of max |f| per triangle: no overflow for data near the float range)
-            scale = np.abs(fv).max(axis=1)
-            scale[scale == 0.0] = 1.0
-            avg_s = avg / scale[:, None]
-            coef = 12.0 * avg_s - 3.0 * avg_s.sum(axis=1, keepdims=True)
-            diff = fv / scale[:, None] - coef @ bary.T
-            norm[start:stop] = scale * np.sqrt(((diff * diff) @ w) * areas)
+        fv = np.ascontiguousarray(fv, dtype=np.float64)  # (a broadcast value: a C copy)
+        _k.load_block(fv, w_c, bary_c, outer, areas, start, local, mom, norm)
 
     threads = _par.n_threads()
     if parallel and m > BLOCK and threads > 1:
