@@ -17,9 +17,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 
 import numba as _nb
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from .errors import InputTypeError, ParameterError
 
@@ -66,9 +67,27 @@ def get_threads() -> dict:
     return {"numba": _nb.get_num_threads(), "blas": _settings["blas_threads"]}
 
 
+#: threadpoolctl's view of the loaded BLAS libraries and ``len(sys.modules)`` when it was
+#: taken: building it scans the process's shared libraries (2.2 ms, at every solve with
+#: ``threadpool_limits``), so it is kept until a module has been imported since (a new
+#: extension module may have loaded another BLAS).
+_blas = {"controller": None, "modules": -1}
+
+
+def _blas_controller() -> ThreadpoolController:
+    if _blas["controller"] is None or _blas["modules"] != len(sys.modules):
+        _blas["controller"] = ThreadpoolController()
+        _blas["modules"] = len(sys.modules)
+    return _blas["controller"]
+
+
 @contextlib.contextmanager
 def blas_limits(threads: int | None = None):
-    """Limit the BLAS thread pool to ``threads`` (default: the configured value) in a block."""
+    """Limit the BLAS thread pool to ``threads`` (default: the configured value) in a block.
+
+    The libraries are those loaded when the block starts (threadpoolctl's scan, kept
+    between blocks while no module is imported: 0.04 ms per block instead of 2.2 ms).
+    """
     n = _settings["blas_threads"] if threads is None else check_count("blas threads", threads)
-    with threadpool_limits(limits=n, user_api="blas"):
+    with _blas_controller().limit(limits=n, user_api="blas"):
         yield
