@@ -1605,42 +1605,53 @@ def _patch_hash_range(geo, max_nt, stride, hashes, n_e, a0, a1):
 
 
 @jit
+def _slot(table_hash, table_rep, h):
+    """Return the slot of hash ``h`` in an open-addressing table.
+
+    Its entry, or the empty slot where it goes (``table_rep < 0``: empty; the
+    size is a power of two).  Shared by every hash table of the patch classes.
+    """
+    mask = table_rep.shape[0] - 1
+    s = np.int64(h & np.uint64(mask))
+    while table_rep[s] >= 0 and table_hash[s] != h:
+        s = (s + 1) & mask
+    return s
+
+
+@jit
+def _doubled(table_hash, table_rep):
+    """Return the table twice as large, its entries inserted again (in slot order)."""
+    size = 2 * table_rep.shape[0]
+    new_hash = np.zeros(size, dtype=np.uint64)
+    new_rep = np.full(size, -1, dtype=np.int64)
+    for j in range(table_rep.shape[0]):
+        if table_rep[j] >= 0:
+            s = _slot(new_hash, new_rep, table_hash[j])
+            new_rep[s] = table_rep[j]
+            new_hash[s] = table_hash[j]
+    return new_hash, new_rep
+
+
+@jit
 def _group_hashes(hashes, rep):
     """``rep[a]``: the first vertex with the hash of a; returns the number of distinct hashes.
 
     Open addressing in a table that doubles when half full (a structured mesh
     has a few dozen distinct patches: the table stays in cache).  Serial, O(N).
     """
-    size = 1024
-    table_hash = np.zeros(size, dtype=np.uint64)
-    table_rep = np.full(size, -1, dtype=np.int64)
+    table_hash = np.zeros(1024, dtype=np.uint64)
+    table_rep = np.full(1024, -1, dtype=np.int64)
     used = 0
     for a in range(hashes.shape[0]):
-        if 2 * used >= size:
-            old_hash, old_rep = table_hash, table_rep
-            size *= 2
-            table_hash = np.zeros(size, dtype=np.uint64)
-            table_rep = np.full(size, -1, dtype=np.int64)
-            for j in range(old_rep.shape[0]):
-                if old_rep[j] >= 0:
-                    s = np.int64(old_hash[j] & np.uint64(size - 1))
-                    while table_rep[s] >= 0:
-                        s = (s + 1) & (size - 1)
-                    table_rep[s] = old_rep[j]
-                    table_hash[s] = old_hash[j]
+        if 2 * used >= table_rep.shape[0]:
+            table_hash, table_rep = _doubled(table_hash, table_rep)
         h = hashes[a]
-        s = np.int64(h & np.uint64(size - 1))
-        while True:
-            if table_rep[s] < 0:
-                table_rep[s] = a
-                table_hash[s] = h
-                rep[a] = a
-                used += 1
-                break
-            if table_hash[s] == h:
-                rep[a] = table_rep[s]
-                break
-            s = (s + 1) & (size - 1)
+        s = _slot(table_hash, table_rep, h)
+        if table_rep[s] < 0:
+            table_rep[s] = a
+            table_hash[s] = h
+            used += 1
+        rep[a] = table_rep[s]
     return used
 
 
@@ -1656,30 +1667,17 @@ def _chunk_firsts(lo, hi, hashes, n_chunks, firsts, n_first):
     for k in range(lo, hi):
         a0 = n * k // n_chunks
         a1 = n * (k + 1) // n_chunks
-        size = 1024
-        table = np.zeros(size, dtype=np.uint64)
-        full = np.zeros(size, dtype=np.bool_)
+        table_hash = np.zeros(1024, dtype=np.uint64)
+        table_rep = np.full(1024, -1, dtype=np.int64)
         used = 0
         for a in range(a0, a1):
-            if 2 * used >= size:
-                old_table, old_full = table, full
-                size *= 2
-                table = np.zeros(size, dtype=np.uint64)
-                full = np.zeros(size, dtype=np.bool_)
-                for j in range(old_full.shape[0]):
-                    if old_full[j]:
-                        s = np.int64(old_table[j] & np.uint64(size - 1))
-                        while full[s]:
-                            s = (s + 1) & (size - 1)
-                        full[s] = True
-                        table[s] = old_table[j]
+            if 2 * used >= table_rep.shape[0]:
+                table_hash, table_rep = _doubled(table_hash, table_rep)
             h = hashes[a]
-            s = np.int64(h & np.uint64(size - 1))
-            while full[s] and table[s] != h:
-                s = (s + 1) & (size - 1)
-            if not full[s]:
-                full[s] = True
-                table[s] = h
+            s = _slot(table_hash, table_rep, h)
+            if table_rep[s] < 0:
+                table_rep[s] = a
+                table_hash[s] = h
                 firsts[a0 + used] = a
                 used += 1
         n_first[k] = used
@@ -1707,9 +1705,7 @@ def _merge_firsts(hashes, firsts, n_chunks, n_first):
         for j in range(a0, a0 + n_first[k]):
             a = firsts[j]
             h = hashes[a]
-            s = np.int64(h & np.uint64(size - 1))
-            while table_rep[s] >= 0 and table_hash[s] != h:
-                s = (s + 1) & (size - 1)
+            s = _slot(table_hash, table_rep, h)
             if table_rep[s] < 0:
                 table_rep[s] = a
                 table_hash[s] = h
@@ -1720,14 +1716,8 @@ def _merge_firsts(hashes, firsts, n_chunks, n_first):
 @jit
 def _lookup_range(lo, hi, hashes, table_hash, table_rep, rep):
     """``rep[a]`` for ``lo <= a < hi``: the first vertex of a's hash, from the merged table."""
-    mask = np.uint64(table_hash.shape[0] - 1)
-    size = table_hash.shape[0]
     for a in range(lo, hi):
-        h = hashes[a]
-        s = np.int64(h & mask)
-        while table_hash[s] != h or table_rep[s] < 0:
-            s = (s + 1) & (size - 1)
-        rep[a] = table_rep[s]
+        rep[a] = table_rep[_slot(table_hash, table_rep, hashes[a])]
 
 
 def _group_hashes_threaded(hashes, rep, threads, grain=None):

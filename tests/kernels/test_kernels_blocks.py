@@ -186,15 +186,15 @@ def test_grouped_hashes_in_chunks_are_the_serial_ones():
         want = np.empty(hashes.size, dtype=np.int64)
         distinct = kf._group_hashes(hashes, want)
         assert distinct == np.unique(hashes).size
+        first = {}
+        for a, h in enumerate(hashes.tolist()):  # the definition (tables grown, collisions)
+            first.setdefault(h, a)
+        np.testing.assert_array_equal(want, [first[h] for h in hashes.tolist()])
         for threads in (kf.BLOCK_THREADS, 7, 64):
             for grain in (1, 1000, None):
                 got = np.empty(hashes.size, dtype=np.int64)
                 assert kf._group_hashes_threaded(hashes, got, threads, grain) == distinct
                 np.testing.assert_array_equal(got, want)
-        first = {}
-        for a, h in enumerate(hashes.tolist()):  # the definition, on the last case
-            first.setdefault(h, a)
-        np.testing.assert_array_equal(want, [first[h] for h in hashes.tolist()])
 
 
 def test_patch_classes_with_many_threads_are_the_same(monkeypatch):
