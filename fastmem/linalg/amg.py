@@ -732,7 +732,12 @@ class PCG:
     set up but never advanced applies no preconditioner and holds two
     vectors fewer.  ``z`` lives only inside :meth:`step` (between iterations
     the CG holds ``x``, ``r``, ``p`` and ``b``: one vector less under the
-    estimators of a check).  :meth:`release` drops them (and the
+    estimators of a check).  Likewise the preconditioned residual of an
+    iteration, and the direction update it feeds, are computed by the *next*
+    :meth:`step`: the same operations on the same ``r`` and ``p``, so the
+    same bits, but a CG that stops after an iteration (every inexact Newton
+    step does) has applied the preconditioner once per iteration, not once
+    more for a direction it never uses.  :meth:`release` drops them (and the
     preconditioner) for good once the caller is done iterating.
 
     Parameters
@@ -788,7 +793,8 @@ class PCG:
     def restart(self):
         """Recompute the residual from ``x`` and restart the search direction."""
         self.r = self._residual()
-        self.z = self.p = self.rz = None  # computed by the next step (see the class notes)
+        self.p = self.rz = None  # computed by the next step (see the class notes)
+        self._pending = False  # no direction update owed (p is formed afresh from r)
         self.restarts += 1
         self._fresh = True
         self._true = (self.iterations, float(np.linalg.norm(self.r)))
@@ -855,16 +861,19 @@ class PCG:
 
         ``x``, ``r`` and the residual checks stay usable.
         """
-        self.m = self.z = self.p = self.rz = None
+        self.m = self.p = self.rz = None
         self.stuck = True
 
     def step(self) -> bool:
         """One CG iteration.  Returns False when the iteration cannot proceed (:attr:`stuck`)."""
         if self.stuck:
             return False
+        n = self.x.shape[0]
         if self.rz is None:  # first step after a (re)start
             self.p = self.m(self.r)  # z of the restart: only p keeps it (updated in place)
             self.rz = float(self.r @ self.p)
+        elif self._pending:  # the previous iteration's z and direction (see the class notes)
+            self._direction(n)
         if self.rz <= 0.0 or not np.isfinite(self.rz):
             return self._breakdown()
         ap = self.a @ self.p
@@ -872,7 +881,6 @@ class PCG:
         if pap <= 0.0 or not np.isfinite(pap):
             return self._breakdown()
         alpha = self.rz / pap
-        n = self.x.shape[0]
         fused = n >= THREADED_ROWS and plain_float64((self.x, self.r, self.p, ap), n)
         if fused:  # NumPy's operations in the kernel threads, no temporaries
             _par.parallel_for(
@@ -882,19 +890,24 @@ class PCG:
             self.x += alpha * self.p
             self.r -= alpha * ap
         del ap
-        self.z = self.m(self.r)
-        rz_new = float(self.r @ self.z)
-        beta = rz_new / self.rz
-        self.rz = rz_new
-        if fused and plain_float64((self.z,), n):
-            _par.parallel_for(cg_direction_range, n, beta, read_only(self.z), self.p)
-        else:
-            self.p *= beta
-            self.p += self.z
-        self.z = None  # recomputed from r by the next step: not kept between iterations
+        self._pending = True  # z = M r and the new direction: the next step forms them
         self.iterations += 1
         self._fresh = False
         return True
+
+    def _direction(self, n):
+        """``z = M r``, ``beta = r.z / r.z_old`` and ``p = z + beta p`` of the last iteration."""
+        self._pending = False
+        z = self.m(self.r)
+        rz_new = float(self.r @ z)
+        beta = rz_new / self.rz
+        self.rz = rz_new
+        fused = n >= THREADED_ROWS and plain_float64((self.x, self.r, self.p, z), n)
+        if fused:
+            _par.parallel_for(cg_direction_range, n, beta, read_only(z), self.p)
+        else:
+            self.p *= beta
+            self.p += z
 
     def solve(self, rtol: float, maxiter: int) -> int:
         """Iterate until ``||b - A x|| <= rtol ||b||`` (true residual) or round-off.
