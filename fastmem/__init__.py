@@ -56,12 +56,18 @@ from .fem.obstacle import Obstacle  # noqa: E402
 from .fem.scene import Scene  # noqa: E402
 from .io.archive import load  # noqa: E402
 from .io.result import Estimate, Result  # noqa: E402
+from .memory import keep_freed_memory as _keep_freed_memory  # noqa: E402
+from .memory import release_memory  # noqa: E402
 from .mesh.mesh import Mesh  # noqa: E402
 from .pipeline import solve  # noqa: E402
 from .problems.manufactured import Manufactured  # noqa: E402
 from .sweeps.study import load_sweep, sweep  # noqa: E402
 
 __version__ = _package_version("0+unknown")
+
+# glibc keeps and reuses the memory fastmem frees instead of faulting it in again
+# (fastmem.memory.keep_freed_memory; FASTMEM_REUSE_HEAP=0 leaves the allocator alone)
+_keep_freed_memory()
 
 
 def __getattr__(name):
@@ -71,6 +77,7 @@ def __getattr__(name):
 
         return importlib.import_module(f"{__name__}.twophase")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "Estimate",
@@ -86,6 +93,7 @@ __all__ = [
     "get_threads",
     "load",
     "load_sweep",
+    "release_memory",
     "set_threads",
     "solve",
     "sweep",

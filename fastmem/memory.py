@@ -18,6 +18,7 @@ This module sits on the ground floor with :mod:`fastmem.errors` and
 
 from __future__ import annotations
 
+import ctypes
 import math
 import os
 
@@ -27,10 +28,13 @@ from .errors import MemoryLimitError, ParameterError
 
 __all__ = [
     "MEMORY_LIMIT_ENV",
+    "REUSE_HEAP_ENV",
     "check_memory",
     "estimate_memory",
     "meminfo_bytes",
+    "keep_freed_memory",
     "memory_limit",
+    "release_memory",
     "rss_bytes",
 ]
 
@@ -212,3 +216,73 @@ def rss_bytes():
             return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError, AttributeError):
         return 0
+
+
+# ----------------------------------------------------------------------------- the heap
+
+#: Environment variable: ``0``, ``no``, ``false`` or ``off`` leaves glibc's allocator as it
+#: is (:func:`keep_freed_memory` does nothing).
+REUSE_HEAP_ENV = "FASTMEM_REUSE_HEAP"
+
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_heap = {"libc": None, "probed": False, "kept": False}
+
+
+def _glibc():
+    """Return the C library (glibc: ``mallopt``, ``malloc_trim``), or None elsewhere."""
+    if not _heap["probed"]:
+        _heap["probed"] = True
+        try:
+            libc = ctypes.CDLL("libc.so.6")
+            libc.mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+            libc.malloc_trim.argtypes = (ctypes.c_size_t,)
+            _heap["libc"] = libc
+        except (OSError, AttributeError):  # not Linux with glibc: the allocator as it is
+            _heap["libc"] = None
+    return _heap["libc"]
+
+
+def keep_freed_memory() -> bool:
+    """Let glibc keep freed memory in this process and reuse it (``import fastmem`` calls it).
+
+    glibc maps every array above its mmap threshold (at most 32 MiB) into
+    fresh pages and unmaps it when it is freed, and returns free memory at
+    the top of its heap to the system; the next array then faults its pages
+    in again.  fastmem allocates and frees such arrays in every phase (the
+    mesh's topology, the matrices of each Newton step, the flux maps; at
+    n = 2048 every vertex vector is 32 MiB), and fresh pages are slow on
+    virtual machines (2.3-2.9 ms per MiB measured on the benchmark VM).
+    Here glibc takes every allocation from its heap (``M_MMAP_MAX = 0``) and
+    trims it only above 2 GiB of free top (``M_TRIM_THRESHOLD``), so freed
+    arrays are reused in place: three solves at n = 2048 spent 11 s instead
+    of 38 s in the kernel, the peak resident memory 4 % more.
+
+    The price: the process holds the memory of its largest phase until it
+    exits or calls :func:`release_memory` (the sweep tasks do after each run).
+    Returns True when the setting was made (glibc, and the environment
+    variable :data:`REUSE_HEAP_ENV` not ``0``/``off``); a no-op elsewhere.
+    """
+    if _heap["kept"]:
+        return True
+    if os.environ.get(REUSE_HEAP_ENV, "1").strip().lower() in ("0", "no", "false", "off"):
+        return False
+    libc = _glibc()
+    if libc is None:
+        return False
+    ok = libc.mallopt(_M_MMAP_MAX, 0) == 1
+    ok = libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1 and ok
+    _heap["kept"] = ok
+    return ok
+
+
+def release_memory() -> bool:
+    """Give the free memory of this process back to the system (glibc's ``malloc_trim``).
+
+    After a large solve the process holds the memory it freed (see
+    :func:`keep_freed_memory`); call this before other memory-hungry work
+    that is not fastmem's.  The next fastmem run then faults its memory in
+    again.  Returns True when memory was released; False elsewhere.
+    """
+    libc = _glibc()
+    return libc is not None and bool(libc.malloc_trim(0))

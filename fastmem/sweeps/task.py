@@ -26,6 +26,7 @@ from ..errors import ArchiveError, InputTypeError
 from ..fem.obstacle import Obstacle
 from ..fem.scene import Scene
 from ..io.archive import load
+from ..memory import keep_freed_memory, release_memory
 from ..pipeline import solve
 from .claims import CLAIMS_DIR, LEASE, acquire
 from .engine import _host
@@ -126,13 +127,14 @@ def _tune_malloc() -> None:
     array above 128 KiB is a fresh mmap whose pages fault in again: a solve at
     n = 256 took 1.5x as long (1.21 s instead of 0.80 s, one thread).  A fixed
     mmap threshold of 32 MiB gives the time back (0.83 s) and keeps the trimming.
-    Once per process, and only when the variable is set.
+    Once per process, and only when the variable is set and fastmem's own
+    setting (:func:`fastmem.memory.keep_freed_memory`: no mmapped arrays at all,
+    made at import) is switched off.
     """
-    if _malloc_tuned or "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+    if _malloc_tuned or "MALLOC_TRIM_THRESHOLD_" not in os.environ or keep_freed_memory():
         return
     _malloc_tuned.append(True)
     try:
-
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(ctypes.c_int(-3), ctypes.c_int(_MMAP_THRESHOLD))  # M_MMAP_THRESHOLD
     except (OSError, AttributeError):  # not glibc
@@ -194,6 +196,9 @@ def _run_job(job: _Job) -> dict:
         return _solve_claimed(job, archive, rel, claims, holder)
     finally:
         holder[0].release()
+        # the run's arrays are freed: give their memory back, so that the worker's
+        # memory monitor (dask pauses a worker above 80 % of its limit) sees it go
+        release_memory()
 
 
 def _solve_claimed(job: _Job, archive: Path, rel: str, claims: Path, holder: list) -> dict:
