@@ -469,11 +469,13 @@ def _precompile_sums() -> None:
     maps = [np.zeros(1) for _ in range(6)]
     sums.combine_blocks(0, 1, sums.BLOCK, *maps, np.empty((1, len(sums.COMBINE_SUMS))))
     mesh = Mesh.square(2)
-    vectors = [read_only(np.zeros(mesh.n_vertices)) for _ in range(5)]
+    n = mesh.n_vertices
+    vectors = [read_only(np.zeros(n)) for _ in range(5)]
+    values = [np.zeros(n) for _ in range(4)] + [np.zeros(n, dtype=np.uint8)]
+    sums.vertex_values(0, n, *vectors, mesh.lumped_mass, mesh.boundary_vertex_mask, *values)
     sums.global_blocks(
-        0, 1, sums.BLOCK, mesh.triangles, mesh.areas, *vectors, mesh.lumped_mass,
-        mesh.boundary_vertex_mask, mesh.vertices, read_only(np.ones(1)),
-        np.empty((1, len(sums.GLOBAL_SUMS))),
+        0, 1, sums.BLOCK, mesh.triangles, mesh.areas, *values, mesh.vertices,
+        read_only(np.ones(1)), np.empty((1, len(sums.GLOBAL_SUMS))),
     )  # fmt: skip
     sums.lumped_blocks(
         0, 1, sums.BLOCK, mesh.triangles, mesh.areas, vectors[0], mesh.lumped_mass,

@@ -406,13 +406,14 @@ def _glob_from_squares(squares, c_f, mu1, mu2) -> dict:
 
 
 def _global_blocks(mesh, u1, u2, lam, r1, r2, mu2=None):
-    """Return the squared norms of :func:`global_terms` (and S) from one pass of the threads.
+    """Return the squared norms of :func:`global_terms` (and S) from two passes of the threads.
 
     ``(|rho1 + lam^-|^2, |rho2 - lam^-|^2, |rho1|^2, |rho2|^2, |lam^-|^2, S)`` summed
     triangle by triangle with the element mass matrices
     (:func:`fastmem.kernels.sums.global_blocks`: fixed blocks, so the same for
     every thread count; equal to the mass-matrix products of the NumPy path up to
-    round-off), or None on meshes below :data:`BLOCK_SUM_TRIANGLES` triangles, for
+    round-off; the vertex values first, :func:`fastmem.kernels.sums.vertex_values`),
+    or None on meshes below :data:`BLOCK_SUM_TRIANGLES` triangles, for
     vectors that are not contiguous float64 of one value per vertex, and when a
     value is not finite (the NumPy path then names it).  ``S``: with ``mu2`` (the
     tension of membrane 2, one value or one per triangle) the sum of the squared
@@ -428,12 +429,18 @@ def _global_blocks(mesh, u1, u2, lam, r1, r2, mu2=None):
     else:
         vertices = mesh.vertices
         mu2 = np.ascontiguousarray(np.atleast_1d(np.asarray(mu2, dtype=np.float64)))
+    n = mesh.n_vertices
+    rho1, rho2, lam_minus, gap = (np.empty(n) for _ in range(4))
+    flags = np.empty(n, dtype=np.uint8)
+    _par.parallel_for(
+        _sums.vertex_values, n, *(read_only(x) for x in vectors), mesh.lumped_mass,
+        mesh.boundary_vertex_mask, rho1, rho2, lam_minus, gap, flags,
+    )  # fmt: skip
     blocks = -(-m // _sums.BLOCK)
     out = np.empty((blocks, len(_sums.GLOBAL_SUMS)))
     _par.parallel_for(
         _sums.global_blocks, blocks, _sums.BLOCK, mesh.triangles, mesh.areas,
-        *(read_only(x) for x in vectors), mesh.lumped_mass, mesh.boundary_vertex_mask,
-        vertices, read_only(mu2), out, grain=1,
+        rho1, rho2, lam_minus, gap, flags, vertices, read_only(mu2), out, grain=1,
     )  # fmt: skip
     if out[:, 6].any():
         return None

@@ -230,3 +230,53 @@ def test_nonconformity_is_zero_where_the_gap_is_not_negative():
     # gap = x - 1/2: negative on {x < 1/2}, area 1/2 - 1/8 = 3/8
     nc, _ = nonconformity(*corners, -0.5, 0.5, -0.5, 1.0)
     assert nc == pytest.approx(np.sqrt(3.0 / 8.0), rel=1e-14)
+
+
+def _global_reference(mesh, u1, u2, lam, r1, r2, mu2, block):
+    """The block sums of _global_blocks by the per-corner formulas in plain Python
+    (each corner's rho and lam^- computed where it is used, boundary corners skipped)."""
+    from fastmem.kernels.cut import nonconformity
+
+    tri, xy, b = mesh.triangles, mesh.vertices, mesh.lumped_mass
+    boundary = mesh.boundary_vertex_mask
+    m = tri.shape[0]
+    rows = np.zeros((-(-m // block), 6))
+    for k in range(m):
+        s1 = s2 = sl = q0 = q1 = q2 = q3 = q4 = 0.0
+        for v in tri[k]:
+            if boundary[v]:
+                continue
+            x1, x2 = r1[v] / b[v], r2[v] / b[v]
+            lm = max(lam[v], 0.0) - lam[v]
+            s1, s2, sl = s1 + x1, s2 + x2, sl + lm
+            q0, q1 = q0 + (x1 + lm) * (x1 + lm), q1 + (x2 - lm) * (x2 - lm)
+            q2, q3, q4 = q2 + x1 * x1, q3 + x2 * x2, q4 + lm * lm
+        w = mesh.areas[k] / 12.0
+        row = rows[k // block]
+        row[0] += w * (q0 + (s1 + sl) * (s1 + sl))
+        row[1] += w * (q1 + (s2 - sl) * (s2 - sl))
+        row[2] += w * (q2 + s1 * s1)
+        row[3] += w * (q3 + s2 * s2)
+        row[4] += w * (q4 + sl * sl)
+        g = [u1[v] - u2[v] for v in tri[k]]
+        if min(g) < 0.0:
+            (a, c, d) = tri[k]
+            nc, _ = nonconformity(*xy[a], *xy[c], *xy[d], *g, mu2)
+            row[5] += nc * nc
+    return tuple(float(t) for t in rows.sum(axis=0))
+
+
+@pytest.mark.parametrize("block", [7, 32768])
+def test_global_blocks_are_the_per_corner_sums(monkeypatch, block):
+    """The vertex values computed once per vertex (kernels.sums.vertex_values) give the
+    sums of the formulas evaluated at every triangle corner, boundary corners skipped
+    (to the last bits: Numba may fuse a multiply and an add where Python rounds twice;
+    the solver's estimates kept their bits, docs/performance.md)."""
+    m = fm.Mesh.lshape(6).refine()
+    args = _global_case(np.random.default_rng(7), m)
+    monkeypatch.setattr(terms, "BLOCK_SUM_TRIANGLES", 0)
+    monkeypatch.setattr(terms._sums, "BLOCK", block)
+    got = terms._global_blocks(m, *args, mu2=2.0)
+    want = _global_reference(m, *args, 2.0, block)
+    assert got == pytest.approx(want, rel=1e-14, abs=0.0)
+    assert min(want) > 0.0  # every sum, eta_nc's included, is exercised
