@@ -204,7 +204,7 @@ def _cpus() -> int:
 
 
 #: Python code the helper process runs (a module run with -m would be imported twice)
-#: (the coefficient pass first: meanwhile the caller compiles the largest
+#: (the bound's contact terms first: meanwhile the caller compiles the largest
 #: callee of the patch kernel, which the helper then finds in the cache; should
 #: the patch kernel's typing reach them first, it waits for them, up to 5 s after
 #: the helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
@@ -259,7 +259,10 @@ try:
     after_the_caller(flux._reduced_solve2)
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass
-flux.precompile("coefficients")
+# the bound's contact terms while the caller compiles the solvers and the coefficient
+# pass (the caller then loads them from the cache)
+from fastmem.kernels import cut
+cut.precompile()
 for part in sys.argv[3:]:
     if part == "refinement":
         from fastmem.mesh.refine import precompile
@@ -295,9 +298,12 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     _helper = spawn_compile_helper(*parts)
     if _helper is None:
         return False
-    # the patch kernel's largest callee, here, while the helper imports
-    # fastmem and compiles the coefficient pass: it then loads it from the cache
+    # the patch kernel's largest callee, here, while the helper imports the kernels
+    # and compiles the bound's contact terms: it then loads it from the cache; and the
+    # flux's coefficient pass, so that the helper's share (the patch kernel, 5.4 s)
+    # ends about when this process needs it (it had waited 3 s for the helper)
     flux.precompile("solvers")
+    flux.precompile("coefficients")
     return True
 
 

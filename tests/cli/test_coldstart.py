@@ -22,6 +22,7 @@ import threading
 import numba
 import numpy as np
 import pytest
+from fastmem.kernels import cut as kcut
 from fastmem.kernels import flux as kf
 from fastmem.kernels import nvb as knvb
 from fastmem.kernels import pool as _par
@@ -38,6 +39,7 @@ def test_precompile_compiles_the_pipeline_specialisations():
     """precompile() and a real reconstruction + flux estimators share one specialisation."""
     for part in ("solvers", "coefficients", "estimators", "patches"):
         kf.precompile(part)
+    kcut.precompile()  # the helper's first part (fastmem.cli.warmup)
     x = fm.Mesh.square(6)
     mu1 = np.where(x.vertices[x.triangles, 0].mean(axis=1) < 0.5, 1.0, 1e4)
     for mu in ((1.0, 1.0), (mu1, 2.0)):
@@ -65,6 +67,8 @@ def test_precompile_compiles_the_pipeline_specialisations():
     assert all(c <= 1 for c in counts.values()), counts
     assert counts["_reconstruct_chunk"] == counts["_estimators_chunk"] == 1, counts
     assert counts["color_vertices"] == 1, counts
+    # the contact terms: the helper's specialisation is the one the checks and the bound use
+    assert len(kcut._contact_terms_range.signatures) == 1
 
 
 def test_precompile_refuses_an_unknown_part():
