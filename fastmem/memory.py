@@ -31,6 +31,7 @@ __all__ = [
     "REUSE_HEAP_ENV",
     "check_memory",
     "estimate_memory",
+    "fix_mmap_threshold",
     "meminfo_bytes",
     "keep_freed_memory",
     "memory_limit",
@@ -225,7 +226,7 @@ def rss_bytes():
 REUSE_HEAP_ENV = "FASTMEM_REUSE_HEAP"
 
 # glibc's mallopt parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _M_MMAP_MAX = -1, -3, -4
 _heap = {"libc": None, "probed": False, "kept": False}
 
 
@@ -276,6 +277,18 @@ def keep_freed_memory() -> bool:
     ok = libc.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1) == 1 and ok
     _heap["kept"] = ok
     return ok
+
+
+def fix_mmap_threshold(nbytes: int) -> bool:
+    """Set glibc's mmap threshold to ``nbytes`` (fixed: no longer adjusted by glibc).
+
+    For processes where :func:`keep_freed_memory` is switched off: the sweep
+    tasks in dask workers, whose ``MALLOC_TRIM_THRESHOLD_`` switches off glibc's
+    dynamic threshold (:mod:`fastmem.sweeps.task`).  True when set; False
+    elsewhere.
+    """
+    libc = _glibc()
+    return libc is not None and libc.mallopt(_M_MMAP_THRESHOLD, int(nbytes)) == 1
 
 
 def release_memory() -> bool:

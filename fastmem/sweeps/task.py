@@ -7,7 +7,6 @@ solves it, writes its archive and the write log, and returns its row;
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
 import math
@@ -26,7 +25,7 @@ from ..errors import ArchiveError, InputTypeError
 from ..fem.obstacle import Obstacle
 from ..fem.scene import Scene
 from ..io.archive import load
-from ..memory import keep_freed_memory, release_memory
+from ..memory import fix_mmap_threshold, keep_freed_memory, release_memory
 from ..pipeline import solve
 from .claims import CLAIMS_DIR, LEASE, acquire
 from .engine import _host
@@ -134,11 +133,7 @@ def _tune_malloc() -> None:
     if _malloc_tuned or "MALLOC_TRIM_THRESHOLD_" not in os.environ or keep_freed_memory():
         return
     _malloc_tuned.append(True)
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(ctypes.c_int(-3), ctypes.c_int(_MMAP_THRESHOLD))  # M_MMAP_THRESHOLD
-    except (OSError, AttributeError):  # not glibc
-        return
+    fix_mmap_threshold(_MMAP_THRESHOLD)  # (a no-op where the C library is not glibc)
 
 
 def _set_task_threads(threads: dict) -> None:

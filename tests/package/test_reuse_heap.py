@@ -114,3 +114,30 @@ def test_a_solve_gives_the_same_bits_with_either_allocator_setting():
     assert kept[0] == plain[0]
     for x, y in zip(kept[1:], plain[1:], strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+def test_fixed_mmap_threshold_where_the_heap_is_not_kept():
+    """fix_mmap_threshold (the sweep tasks' setting when FASTMEM_REUSE_HEAP=0): an array
+    below the threshold comes from the heap, one above it is mmapped."""
+    _libc()
+    code = (
+        "import ctypes, numpy as np, fastmem.memory as m\n"
+        "class M(ctypes.Structure):\n"
+        "    _fields_ = [(n, ctypes.c_size_t) for n in 'abcdefghij']\n"
+        "libc = ctypes.CDLL('libc.so.6'); libc.mallinfo2.restype = M\n"
+        "print(m.fix_mmap_threshold(256 << 20))\n"
+        "for words in (12 << 20, 48 << 20):\n"  # 96 MiB, 384 MiB
+        "    h0 = libc.mallinfo2().e\n"
+        "    a = np.ones(words)\n"
+        "    print(libc.mallinfo2().e - h0)\n"
+        "    del a\n"
+    )
+    env = dict(os.environ, **{REUSE_HEAP_ENV: "0"})
+    run = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 0, run.stderr
+    ok, below, above = run.stdout.split()
+    assert ok == "True"
+    assert int(below) < 8 * MB  # 96 MiB < 256 MiB: heap
+    assert int(above) >= 384 * MB  # mmapped
