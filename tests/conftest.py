@@ -6,8 +6,8 @@ import os
 # second Numba cache (kernels/__pycache__) that the suite's own warm-up never fills:
 # a cold suite spent about 40 s compiling there (clean clone, 2 cores, 2026-12-03:
 # 299 s -> 260 s). Python >= 3.11; older ones ignore it and import the tree as before.
-# Subprocesses that need the repository on their path (python -m bench...) set
-# PYTHONPATH.
+# The benchmarks' subprocesses (python -m bench...) get bench/ alone on their path
+# (fresh.bench_env).
 os.environ["PYTHONSAFEPATH"] = "1"
 
 import numpy as np

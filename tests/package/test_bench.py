@@ -8,12 +8,12 @@ asserts on wall time.  About 40 s on a 2-core machine.
 """
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from fresh import bench_env
 
 pytest.importorskip("pyamg")
 
@@ -34,9 +34,8 @@ MACHINE_KEYS = {"cores", "numba_threads", "fastmem_threads", "blas_libraries", "
 
 
 def _run(args, results):
-    env = dict(os.environ)
+    env = bench_env()
     env.pop("FASTMEM_BENCH_RESULTS", None)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
     return subprocess.run(
         [sys.executable, "-m", *args, "--results", str(results)],
         cwd=ROOT,

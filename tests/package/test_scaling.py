@@ -1,21 +1,20 @@
 """bench.scaling --merge: a size measured on its own joins the rows of an earlier run."""
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
+
+from fresh import bench_env
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 def _run(results, *args):
-    env = dict(os.environ)  # the bench package from the repository (tests/conftest.py)
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
     subprocess.run(
         [sys.executable, "-m", "bench.scaling", "--quick", "--results", str(results), *args],
         cwd=ROOT,
-        env=env,
+        env=bench_env(),
         check=True,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
