@@ -133,7 +133,7 @@ from ..mesh.refine import (
     refine_marked,
     refinement_edges,
 )
-from ..solver.levels import keeps_chain, solve_levels
+from ..solver.levels import attach_laplacian, keeps_chain, solve_levels
 from ..solver.nested import NESTED_MIN_VERTICES
 
 __all__ = [
@@ -705,6 +705,7 @@ def solve_to_tolerance(scene, options, init, timings):
                 triple = prolong_to_refined(new_scene, refinement, last)
                 if chain is not None:
                     extend_chain(chain, scene.mesh, mesh, refinement)
+                    attach_laplacian(level_options, chain[0], scene)
                 # eta_disc ~ N^(-1/2) on adapted meshes: the prediction for the next mesh
                 hint = row["eta_disc"] * (row["n_vertices"] / mesh.n_vertices) ** 0.5
                 scene, prolonged = new_scene, True

@@ -10,7 +10,12 @@ smoothed prolongators, so its setup is only the coarse operators:
 - the Galerkin products ``A_(l+1) = P_l^T A_l P_l``, computed coarse row by
   coarse row in parallel row chunks (:func:`galerkin`,
   :func:`fastmem.kernels.mg.galerkin_rows`); for the Laplacian of nested P1
-  meshes they are the coarser meshes' own Laplacians;
+  meshes they are the coarser meshes' own Laplacians, so where the caller
+  knows those (nested iteration and the adaptive loop assemble them anyway)
+  it attaches them to the interpolations (:func:`attach_coarse_operator`) and
+  no product is formed: each is checked against the finer operator by one
+  probe vector and used only where it is that level's Galerkin product to
+  round-off (on the structured meshes it is, bit for bit);
 - for the gap system of a Newton-min step (the Laplacian with the active
   rows and columns replaced by the diagonal), the *truncated* first
   interpolation ``K P`` (``K`` keeps the inactive vertices): the coarse
@@ -49,7 +54,14 @@ from ..kernels.smooth import (
 from .amg import amg_preconditioner, hybrid_blocks
 from .sparse import THREADED_ROWS, as_unsigned, read_only, threaded
 
-__all__ = ["COARSE_DENSE", "NestedChain", "NestedMG", "galerkin", "precompile"]
+__all__ = [
+    "COARSE_DENSE",
+    "NestedChain",
+    "NestedMG",
+    "attach_coarse_operator",
+    "galerkin",
+    "precompile",
+]
 
 #: The coarsest level is factored densely (Cholesky) up to this many unknowns.
 COARSE_DENSE = 2000
@@ -195,6 +207,50 @@ def restriction(p) -> sp.csr_matrix:
     return r
 
 
+#: Use the coarse operators attached to the interpolations (:func:`attach_coarse_operator`)
+#: instead of forming the Galerkin products; False: always form them (the reference).
+ATTACHED_COARSE = True
+#: An attached operator ``C`` is used for ``P^T A P`` when, for one probe vector ``x``,
+#: ``|P^T A P x - C x|_max <= ATTACHED_RTOL |C|_inf |x|_max`` (round-off passes, a coarse
+#: mesh that is not nested in the fine one does not).
+ATTACHED_RTOL = 1e-10
+_ATTR = "_fastmem_coarse_operator"
+
+
+def attach_coarse_operator(p, a_coarse) -> None:
+    """Record ``a_coarse`` as the operator on the coarse side of the interpolation ``p``.
+
+    ``a_coarse`` (m x m for an n x m ``p``) is the coarse mesh's own matrix of the
+    operator whose fine matrix the chain will be given, e.g. the interior Laplacian
+    of the coarser mesh of a nested pair: for nested P1 spaces it is the Galerkin
+    product ``P^T A P`` in exact arithmetic, and its pattern (every pair of vertices
+    of a coarse triangle, stored zeros included) holds that of the product and of
+    every masked product, as :meth:`NestedChain.full_operators` needs.  The chain
+    checks it before use (:data:`ATTACHED_RTOL`); ``p`` keeps the reference, so
+    attach only to an interpolation that lives as long as the operator is useful.
+    """
+    m = p.shape[1]
+    if a_coarse.shape != (m, m):
+        raise ValueError(f"attach_coarse_operator: a {a_coarse.shape} operator for a {p.shape} P")
+    setattr(p, _ATTR, _canonical(a_coarse))
+
+
+def _probe_matches(c, a, p, r) -> bool:
+    """Tell whether ``c`` is ``r a p`` (``r = p^T``) to round-off, by one probe vector.
+
+    The scale is ``max |c_ij|`` times the longest row of ``c`` (at least its
+    largest absolute row sum), so the test costs four products and no copy of ``c``.
+    """
+    if not c.nnz:
+        return False
+    x = np.random.default_rng(20261203).random(p.shape[1])
+    diff = threaded(r) @ (threaded(a) @ (threaded(p) @ x))
+    diff -= threaded(c) @ x
+    scale = max(float(c.data.max()), -float(c.data.min())) * int(np.diff(c.indptr).max())
+    err = max(float(diff.max()), -float(diff.min()))
+    return bool(np.isfinite(err)) and err <= ATTACHED_RTOL * scale
+
+
 class NestedChain:
     """The interior-to-interior interpolations of a nested chain, finest first.
 
@@ -205,6 +261,10 @@ class NestedChain:
 
     def __init__(self, prolongations):
         self.p = [_canonical(q) for q in prolongations]
+        #: the coarse operators attached to the interpolations (None where none is)
+        self.attached = [getattr(q, _ATTR, None) for q in prolongations]
+        #: levels of the last :meth:`full_operators` that used the attached operator
+        self.attached_used = 0
         for fine, coarse in zip(self.p, self.p[1:], strict=False):
             if fine.shape[1] != coarse.shape[0]:
                 raise ValueError(
@@ -220,13 +280,24 @@ class NestedChain:
         ``P_0^T base P_0``, then each next one from the one before; cached for
         ``base`` (the same object) until :meth:`drop_cache`.  Their patterns
         hold every masked product (:meth:`NestedMG.build` for a gap system).
+        Where an operator is attached to the level's interpolation
+        (:func:`attach_coarse_operator`) and passes the probe against the operator
+        above it, it is used instead of the product (:attr:`attached_used` counts
+        them); a level below one that was formed is checked the same way.
         """
         if self._full is None or self._full[0] is not base:
             ops, cur = [], _canonical(base)
+            used = 0
             for lev in range(len(self.p)):
-                cur = galerkin(cur, self.p[lev], self.r(lev), drop=False)
+                c = self.attached[lev] if ATTACHED_COARSE else None
+                if c is not None and _probe_matches(c, cur, self.p[lev], self.r(lev)):
+                    cur = c
+                    used += 1
+                else:
+                    cur = galerkin(cur, self.p[lev], self.r(lev), drop=False)
                 ops.append(cur)
             self._full = (base, ops)
+            self.attached_used = used
         return self._full[1]
 
     def drop_cache(self) -> None:

@@ -23,14 +23,14 @@ from ..config import get_threads
 from ..estimators.bound import evaluate
 from ..fem.loaddata import expect_estimates
 from ..io.result import Result
-from ..linalg.gmg import NestedChain
+from ..linalg.gmg import NestedChain, attach_coarse_operator
 from ..linalg.sparse import THREADED_ROWS, submatrix
 from .history import history_arrays, new_history
 from .nested import coarse_scenes, interpolation_matrix, prolong_triple
 from .newton import newton_min
 from .safeguard import new_safeguard_record
 
-__all__ = ["AUXILIARY", "HINT_SAFETY", "solve_levels"]
+__all__ = ["AUXILIARY", "HINT_SAFETY", "attach_laplacian", "keeps_chain", "solve_levels"]
 
 logger = logging.getLogger(__name__)
 
@@ -127,6 +127,19 @@ def _multigrid(options, sc, transfers):
     return None, None
 
 
+def attach_laplacian(options, link, coarse) -> None:
+    """Attach ``coarse``'s interior Laplacian to ``link``, the interpolation from its mesh.
+
+    Only for the decoupled CGs, whose geometric multigrid coarsens the interior
+    Laplacian: on a nested pair it is the Galerkin product that the chain would
+    otherwise form (:func:`fastmem.linalg.gmg.attach_coarse_operator`, which checks
+    it before use).  ``coarse``: the scene of the link's coarse mesh.
+    """
+    if _two_grid(options, coarse) and options.inner.multigrid != "algebraic":
+        ii = coarse.mesh.interior_vertices
+        attach_coarse_operator(link, submatrix(coarse.stiffness, ii, ii))
+
+
 def keeps_chain(options, scene) -> bool:
     """Whether the levels of ``scene``'s solve build multigrid on a chain of interpolations."""
     return options.inner.multigrid != "algebraic" and (
@@ -172,7 +185,9 @@ def solve_levels(
                 ii, ic = sc.mesh.interior_vertices, coarse.mesh.interior_vertices
                 link = submatrix(mat, ii, ic)
                 if keeps_chain(options, sc):
-                    # this level's interpolation joins those of the coarser levels
+                    # this level's interpolation joins those of the coarser levels, with
+                    # the coarser Laplacian that its multigrid's coarse operator is
+                    attach_laplacian(options, link, coarse)
                     transfers.insert(0, link)
                     prolongation, used = _multigrid(options, sc, transfers)
                 else:  # "algebraic": the decoupled CG's two-grid cycle only
