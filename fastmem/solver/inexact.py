@@ -145,6 +145,8 @@ class AdaptiveStep(AMGStep):
     def __init__(self, system, options, check_all=False, prolongation=None):
         super().__init__(system, options, prolongation)
         self.check_all = check_all
+        #: the CGs' own error estimate steers them too (``alg_estimate="cg"``)
+        self.cg_estimate = options.alg_estimate == "cg"
         if self.decoupled:  # the share of s in eta_alg steers its CG
             self.mass = _mass(system.scene)
             self.c_f = friedrichs_constant(system.scene.mesh)
@@ -181,13 +183,36 @@ class AdaptiveStep(AMGStep):
         if self.decoupled and self.mass is None:
             self.mass = _mass(self.cg.system.scene)
 
+    def error_estimate(self) -> float:
+        """Return the CGs' estimate of the algebraic error in the energy norm (not a bound).
+
+        :meth:`fastmem.solver.steps.DecoupledCG.energy_error_estimate`, with the
+        guaranteed share of ``s`` while its CG has made no step;
+        :meth:`fastmem.solver.steps.GeneralCG.energy_error_estimate`.
+        """
+        if not self.decoupled:
+            return self.cg.energy_error_estimate()
+        cg, s_part = self.cg, None
+        if cg.cg_s is not None and cg.cg_s.error_estimate() is None and not cg.s_done:
+            s_part = cg.s_share(self.mass, self.c_f)
+        return cg.energy_error_estimate(s_part)
+
     def _skip(self, last, i, budget):
-        """Return True when the inner criterion cannot plausibly hold yet (skip the check)."""
+        """Return True when the inner criterion cannot plausibly hold yet (skip the check).
+
+        The prediction: ``eta_alg`` of the last check scaled by the CG residual since;
+        with ``alg_estimate="cg"``, the CG's own error estimate where it has one (it
+        needs no check to be formed).
+        """
         if last is None or self.check_all or i >= self.options.max_inner:
             return False
         i_c, eta_c, res_c = last
         if i - i_c >= MAX_SKIP or res_c <= 0.0 or self.cg.residual() <= EXACT_AMG_RTOL:
             return False
+        if self.cg_estimate:
+            estimate = self.error_estimate()
+            if math.isfinite(estimate):
+                return estimate > SKIP_MARGIN * budget
         return eta_c * self.cg.residual() / res_c > SKIP_MARGIN * budget
 
     def solve(self, active, triple, check) -> StepReport:
@@ -219,6 +244,8 @@ class AdaptiveStep(AMGStep):
                 break
             if self.decoupled:
                 s_share = cg.s_share(self.mass, self.c_f)
+                if self.cg_estimate:  # the smaller of the two (Checks: the same)
+                    s_share = min(s_share, cg.s_error_estimate())
             if i >= opts.max_inner:
                 logger.warning(
                     "inexact linear step: %d CG iterations without meeting the algebraic "

@@ -137,6 +137,9 @@ class Checks:
         self.scene = scene
         self.newton, self.record = options.newton, options.record
         self.g_alg = options.inner.gamma_alg
+        # the inner criterion from the CG's own error estimate too (the adaptive loop's
+        # intermediate meshes, fastmem.adapt.loop.INTERMEDIATE_ALG)
+        self.cg_decides = options.inner.alg_estimate == "cg" and isinstance(step, AdaptiveStep)
         self.step = step
         self.level = level
         self.rows = rows
@@ -195,7 +198,10 @@ class Checks:
             if safeguard:
                 disc = self.disc_known
         else:
-            verdict, disc = self._criteria(last, eta_lin, eta_alg, roundoff)
+            decides = eta_alg
+            if self.cg_decides:  # the smaller; the history keeps the guaranteed eta_alg
+                decides = min(eta_alg, self.step.error_estimate())
+            verdict, disc = self._criteria(last, eta_lin, decides, roundoff)
         self._row(last, inner, disc, eta_lin, eta_alg, safeguard)
         self.verdict = verdict
         return verdict

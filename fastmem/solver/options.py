@@ -35,6 +35,7 @@ from ..linalg.amg import check_amg_options
 from ..memory import memory_limit
 
 __all__ = [
+    "ALG_ESTIMATES",
     "EXACT_MAX_VERTICES",
     "MAX_VERTICES",
     "METHODS",
@@ -53,6 +54,8 @@ METHODS = ("inexact", "exact-amg", "exact")
 PATHS = ("auto", "general", "decoupled")
 #: Multigrid preconditioners of the CG steps (``multigrid`` of :func:`fastmem.solve`).
 MULTIGRIDS = ("auto", "geometric", "algebraic")
+#: what the inner criterion of method "inexact" compares with its budget (InnerOptions)
+ALG_ESTIMATES = ("bound", "cg")
 
 #: Default vertex limit of the adaptive loop (about 10M triangles; ~6 GB at the
 #: measured 1.1-1.3 KB per vertex of a solve with the bound).
@@ -145,6 +148,14 @@ class InnerOptions(_Frozen):
     #: "auto": geometric on levels with at least
     #: :data:`fastmem.solver.levels.GEOMETRIC_MIN_UNKNOWNS` interior vertices.
     multigrid: str = "auto"
+    #: What the inner criterion compares with ``gamma_alg max(eta_disc, eta_lin)``:
+    #: "bound", the guaranteed eta_alg (docs/method.md §6); "cg", the smaller of it and
+    #: the CG's own estimate of the energy-norm algebraic error
+    #: (:meth:`fastmem.linalg.amg.PCG.error_estimate`), for a triple that is not
+    #: returned: the adaptive loop's intermediate meshes
+    #: (:func:`fastmem.adapt.loop.solve_to_tolerance`).  The bound of every triple is
+    #: computed as always; only when the CG stops differs.
+    alg_estimate: str = "bound"
     #: The memory limit of :func:`fastmem.solve` (None, False or bytes, as there): the
     #: memory the inexact step's spilling decision (:func:`fastmem.solver.inexact.memory_pressure`)
     #: measures its estimate against, like the guard before the solve.
@@ -160,6 +171,8 @@ class InnerOptions(_Frozen):
             return _number(name, value)
         if name == "amg_reuse":
             return _number(name, value, allow_zero=True)
+        if name == "alg_estimate" and value not in ALG_ESTIMATES:
+            raise ParameterError(f"alg_estimate must be one of {ALG_ESTIMATES}, got {value!r}")
         if name == "multigrid":
             if value not in MULTIGRIDS:
                 raise ParameterError(f"multigrid must be one of {MULTIGRIDS}, got {value!r}")

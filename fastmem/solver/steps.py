@@ -217,6 +217,15 @@ class GeneralCG:
         """Full triple of the current CG iterate."""
         return self.system.triple(self.active, self.p @ self.cg.x)
 
+    def energy_error_estimate(self) -> float:
+        """Return the CG's estimate of the algebraic error in the energy norm (inf before a step).
+
+        The reduced matrix's norm is the energy norm of ``(u1, u2)``
+        (:meth:`fastmem.linalg.amg.PCG.error_estimate`; not a bound).
+        """
+        e = self.cg.error_estimate()
+        return math.inf if e is None else math.sqrt(e)
+
 
 def gap_matrix(a, active):
     """``keep A keep + diag(A) on the active set`` (``keep`` = inactive indicator), CSR.
@@ -571,6 +580,34 @@ class DecoupledCG:
         """Full triple of the current CG iterate."""
         st = self.system
         return st.triple(self.active, self.cg_s.x, self.cg_w.x)  # s: interior values
+
+    def _squared_error(self, cg, done) -> float:
+        if done:
+            return 0.0
+        e = cg.error_estimate()
+        return math.inf if e is None else e
+
+    def energy_error_estimate(self, s_part=None) -> float:
+        """Return the CGs' estimate of the algebraic error in the energy norm (not a bound).
+
+        ``mu1 |e1|_1^2 + mu2 |e2|_1^2 = (|e_s|_1^2 + mu1 mu2 |e_w|_1^2) / (mu1 + mu2)``
+        for the errors of ``s`` and ``w`` in the Laplacian's norm, which the gap matrix's
+        equals on the gap's error (0 on the active set); each from its CG
+        (:meth:`fastmem.linalg.amg.PCG.error_estimate`; inf before its first step).
+        ``s_part``: the part of ``s`` to take while its CG has made no step (its share
+        of the guaranteed eta_alg, :meth:`s_share`: ``s`` often needs none).
+        """
+        st = self.system
+        es = self._squared_error(self.cg_s, self.s_done)
+        if math.isinf(es) and s_part is not None:
+            es = s_part**2 * (st.mu1 + st.mu2)
+        ew = self._squared_error(self.cg_w, False)
+        return math.sqrt((es + st.mu1 * st.mu2 * ew) / (st.mu1 + st.mu2))
+
+    def s_error_estimate(self) -> float:
+        """Return the part of :meth:`energy_error_estimate` due to ``s`` (0 once ``s`` is done)."""
+        st = self.system
+        return math.sqrt(self._squared_error(self.cg_s, self.s_done) / (st.mu1 + st.mu2))
 
     def s_share(self, mass, c_f):
         """Return the part of eta_alg due to the residual of s: C_F ||R_s/B|| / sqrt(mu1 + mu2).

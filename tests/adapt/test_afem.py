@@ -115,10 +115,12 @@ def test_bound_above_the_true_error_on_every_level():
     assert n_levels >= 4
     effectivity = []
     for k in range(1, n_levels + 1):
-        # deterministic: the run stopped after k meshes is the k-th level of the full run
+        # deterministic: the run stopped after k meshes ends on the k-th mesh of the full
+        # run, whose triple (solved there as an intermediate one, adapt.loop.INTERMEDIATE_ALG)
+        # it solves on by the solver's criterion: the bound no larger
         r = fm.solve(scene, tol=0.05, max_levels=k)
         assert r.mesh.n_vertices == full.adaptivity["n_vertices"][k - 1]
-        assert r.eta == full.adaptivity["eta"][k - 1]
+        assert r.eta <= full.adaptivity["eta"][k - 1] * (1 + 1e-12)
         err = ms.energy_error(r.mesh, r.u1, r.u2)
         assert r.eta >= err, (k, r.eta, err)
         effectivity.append(r.eta / err)
@@ -338,6 +340,9 @@ def test_last_mesh_is_solved_tighter(monkeypatch):
     import fastmem.adapt.loop as afem
 
     monkeypatch.setattr(afem, "LANDING_MAX_GROWTH", None)  # meshes independent of tol
+    # every other mesh by the solver's own criterion, as in the baseline (whose loop,
+    # without FINAL_GAMMA, has no tighter solve to fall back on and no cheaper one)
+    monkeypatch.setattr(afem, "INTERMEDIATE_ALG", "bound")
     scene = _default(fm.Mesh.lshape(8))
     with monkeypatch.context() as m:
         m.setattr(afem, "FINAL_GAMMA", None)  # no mesh tightened

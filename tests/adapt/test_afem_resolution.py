@@ -106,7 +106,12 @@ def test_a_true_singularity_stops_at_the_limit_with_a_sane_bound():
     assert r.mesh.diameters.min() >= resolution_limit(mesh) / 2.0 * (1 - 1e-12)
     eta = np.asarray(r.adaptivity["eta"])
     disc = np.asarray(r.adaptivity["eta_disc"])
-    assert (eta <= 1.2 * disc).all()
+    alg, lin = np.asarray(r.adaptivity["eta_alg"]), np.asarray(r.adaptivity["eta_lin"])
+    # the returned triple's solver part is small (its mesh solved on by the solver's
+    # criterion); the intermediate meshes' CGs stopped by their own error estimate
+    # (adapt.loop.INTERMEDIATE_ALG), so only their bound's other parts are compared
+    assert eta[-1] <= 1.2 * disc[-1]
+    assert (eta - alg - lin <= 1.2 * disc).all()
     # exact error 0.1266, eta 0.1911 (effectivity 1.509, measured; limit + 1 %)
     err = k.energy_error(r.mesh, r.u1, r.u2)
     assert err <= r.eta <= 1.525 * err, (err, r.eta)
