@@ -700,6 +700,8 @@ def solve_to_tolerance(scene, options, init, timings):
         energy = energy_norm(scene, result.u1, result.u2)
         target = _target(adapt, energy)
         row = _row(level, scene, result, target, energy, time.perf_counter() - t0)
+        # (for the level monitor, not a column: the CG stopped by its own estimate)
+        row["cg_stop"] = opts is loose and loose is not level_options
         merged.add(result)
         if tight is not None and opts is not tight and _near_miss(row, target):
             # missed by the solver's share only: solve on, on this mesh (no refinement)
@@ -759,6 +761,7 @@ def solve_to_tolerance(scene, options, init, timings):
             reached, reason = True, "tolerance reached"
         elif at_limit:  # the message names the returned triple's indicators
             reason = _markable(scene.mesh, indicators(result.estimate), target)[1] or reason
+        _report(row, adapt)  # the mesh again, as returned
     timings["refine"] = refine_total
     timings["solve"] = time.perf_counter() - t_start - refine_total
     result.timings = timings

@@ -362,16 +362,35 @@ class _LevelMonitor(_Table):
         f"{'cg':>5} {'sec':>7}"
     )
 
+    #: after the table when a row was marked (:meth:`legend`)
+    LEGEND = (
+        "  * an intermediate mesh (it only marks and warm-starts the next one): its CG may\n"
+        "    stop by its own error estimate, so the guaranteed eta_alg of its iterate, and\n"
+        "    eta with it, can be loose; the returned mesh's is not"
+    )
+
+    def __init__(self, enabled: bool):
+        super().__init__(enabled)
+        self.marked = False
+
     def __call__(self, row: dict) -> None:
         if not self.enabled:
             return
+        star = bool(row.get("cg_stop"))
+        self.marked |= star
+        alg = f"{row['eta_alg']:>9.3e}*" if star else f"{row['eta_alg']:>10.3e}"
         _out(
             f"{row['level']:>4d} {row['n_vertices']:>9d} {row['n_triangles']:>10d} "
             f"{row['eta']:>10.3e} {row['target']:>10.3e} {row['eta_disc']:>10.3e} "
-            f"{row['eta_lin']:>10.3e} {row['eta_alg']:>10.3e} "
+            f"{row['eta_lin']:>10.3e} {alg} "
             f"{100 * row['marked_fraction']:>6.1f}% {row['newton']:>6d} {row['inner']:>5d} "
             f"{row['solve_seconds'] + row['refine_seconds']:>7.2f}"
         )
+
+    def legend(self) -> None:
+        """Print what the ``*`` of a row means, if a row had one."""
+        if self.enabled and self.marked:
+            _out(self.LEGEND)
 
 
 def _adapt_keywords(args) -> dict:
@@ -619,6 +638,8 @@ def _cmd_run(args) -> int:
     )
     result.timings["mesh"] = t_mesh
     result.timings["kernels"] = t_kernels
+    if isinstance(adapt.get("level_monitor"), _LevelMonitor):
+        adapt["level_monitor"].legend()
     reason = result.parameters["solver"].get("stop_reason", "step limit reached")
     if adaptive:
         reason = result.parameters["adaptivity"]["stop_reason"]

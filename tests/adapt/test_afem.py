@@ -276,6 +276,11 @@ def test_cli_prints_one_line_per_mesh(tmp_path, capsys):
     lines = [ln for ln in text.splitlines() if ln[:4].strip().isdigit()]
     assert len(lines) == n
     assert f"adaptive meshes   {n}:" in text
+    # the intermediate meshes' eta_alg is marked and explained once; the last mesh's not
+    starred = [ln for ln in lines if "*" in ln]
+    assert starred
+    assert "*" not in lines[-1]
+    assert text.count("an intermediate mesh (it only marks") == 1
     assert main(["info", str(out)]) == 0
     assert "adaptivity" in capsys.readouterr().out
     assert main(["run", "--n", "8", "--tol", "0.05", "--no-estimate"]) != 0
