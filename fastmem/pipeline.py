@@ -209,11 +209,11 @@ def solve(
         Seconds: stop when the next level would end after this time
         (predicted from the last level's time per vertex).
     level_monitor : callable, optional
-        Called with each row of ``result.adaptivity`` (a dict) when its mesh is done;
-        its key ``cg_stop`` (not a column) is True when that mesh's CG could stop by its
-        own error estimate (an intermediate mesh: its ``eta_alg`` and ``eta`` can be
-        loose bounds, :mod:`fastmem.adapt.loop`).  A loop that stops short of the
-        target solves its last mesh on and calls it again with that mesh's new row.
+        Called with each row of ``result.adaptivity`` (a dict) when its mesh is done
+        (``cg_stop`` 1: an intermediate mesh whose CG could stop by its own error
+        estimate, so that its ``eta_alg`` and ``eta`` can be loose bounds,
+        :mod:`fastmem.adapt.loop`).  A loop that stops short of the target solves its
+        last mesh on and calls it again with that mesh's new row.
     memory_limit : int, str, False or None
         The memory guard (:func:`fastmem.memory.check_memory`): before any work the
         peak memory of the solve is estimated from the mesh size, the method and

@@ -181,8 +181,9 @@ ADAPTIVITY_COLUMNS = (
     "inner",  # CG iterations on this mesh (0 for "exact")
     "solve_seconds",  # SOLVE + ESTIMATE
     "refine_seconds",  # MARK + REFINE + moving the scene and the triple
+    "cg_stop",  # 1: an intermediate mesh whose CG could stop by its own error estimate
 )
-_INT_COLUMNS = frozenset({"level", "n_vertices", "n_triangles", "newton", "inner"})
+_INT_COLUMNS = frozenset({"level", "n_vertices", "n_triangles", "newton", "inner", "cg_stop"})
 
 
 def indicators(estimate) -> np.ndarray:
@@ -351,6 +352,7 @@ def _row(level, scene, result, target, energy, seconds):
         "inner": int(inner[-1]) if inner.size else 0,
         "solve_seconds": seconds,
         "refine_seconds": 0.0,
+        "cg_stop": 0,
     }
 
 
@@ -700,8 +702,7 @@ def solve_to_tolerance(scene, options, init, timings):
         energy = energy_norm(scene, result.u1, result.u2)
         target = _target(adapt, energy)
         row = _row(level, scene, result, target, energy, time.perf_counter() - t0)
-        # (for the level monitor, not a column: the CG stopped by its own estimate)
-        row["cg_stop"] = opts is loose and loose is not level_options
+        row["cg_stop"] = int(opts is loose and loose is not level_options)
         merged.add(result)
         if tight is not None and opts is not tight and _near_miss(row, target):
             # missed by the solver's share only: solve on, on this mesh (no refinement)

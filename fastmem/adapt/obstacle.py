@@ -31,7 +31,8 @@ __all__ = ["ADAPTIVITY_COLUMNS", "refine_problem", "solve_obstacle"]
 
 logger = logging.getLogger(__name__)
 
-#: Columns of ``result.adaptivity`` (those of :data:`fastmem.adapt.loop.ADAPTIVITY_COLUMNS`).
+#: Columns of ``result.adaptivity`` (those of :data:`fastmem.adapt.loop.ADAPTIVITY_COLUMNS`
+#: but ``cg_stop``: every mesh's solve here stops by its own criterion).
 ADAPTIVITY_COLUMNS = (
     "level",
     "n_vertices",

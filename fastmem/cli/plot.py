@@ -66,6 +66,11 @@ MISSING_MATPLOTLIB = "fastmem plot needs matplotlib: pip install 'fastmem[plot]'
 """Message of the :class:`ImportError` raised when matplotlib is not installed."""
 
 # (history column, legend label, marker) of the estimator curves of the adaptive methods
+#: legend labels of the hollow markers of an adaptive table's ``cg_stop`` meshes
+_LOOSE_LABEL = {
+    "eta": r"$\eta$, intermediate mesh (can be loose)",
+    "eta_alg": r"$\eta_\mathrm{alg}$, intermediate mesh (can be loose)",
+}
 _ESTIMATOR_CURVES = (
     ("eta", r"$\eta$ (bound)", "o"),
     ("eta_disc", r"$\eta_\mathrm{disc}$ (discretisation)", "s"),
@@ -205,7 +210,10 @@ def _plot_curves(ax, table: dict, x: np.ndarray, curves, *, floor: float = 0.0) 
     many.  Where the table has ``fresh_disc``, the ``eta_disc`` values not
     computed from a flux of that row's iterate (predicted from the coarser
     level, or carried over) are drawn as hollow markers without a line, gid
-    ``eta_disc_predicted``.  Curves without a point left are not drawn.
+    ``eta_disc_predicted``; likewise, where an adaptive table has ``cg_stop``,
+    ``eta`` and ``eta_alg`` of its intermediate meshes (gids ``eta_loose`` and
+    ``eta_alg_loose``: their CG could stop by its own error estimate, so these
+    bounds can be loose).  Curves without a point left are not drawn.
 
     Returns the y values drawn (one array per curve drawn).
     """
@@ -213,6 +221,9 @@ def _plot_curves(ax, table: dict, x: np.ndarray, curves, *, floor: float = 0.0) 
     fresh = None
     if "fresh_disc" in table:
         fresh = _column(table, "fresh_disc") > 0
+    loose = None  # adaptive meshes whose CG could stop by its own estimate (cg_stop)
+    if "cg_stop" in table and np.any(_column(table, "cg_stop") > 0):
+        loose = _column(table, "cg_stop") > 0
     for name, label, marker in curves:
         if name not in table:
             continue
@@ -232,6 +243,14 @@ def _plot_curves(ax, table: dict, x: np.ndarray, curves, *, floor: float = 0.0) 
             parts = [
                 (name, keep & fresh[:n], label, dict(marker=marker, markersize=4)),
                 ("eta_disc_predicted", keep & ~fresh[:n], _PREDICTED_LABEL, predicted),
+            ]
+        if name in ("eta", "eta_alg") and loose is not None:
+            hollow = dict(
+                marker=marker, markersize=4, linestyle="none", markerfacecolor="none", alpha=0.6
+            )
+            parts = [
+                (name, keep & ~loose[:n], label, dict(marker=marker, markersize=4)),
+                (f"{name}_loose", keep & loose[:n], _LOOSE_LABEL[name], hollow),
             ]
         colour = None
         for gid, mask, text, style in parts:
@@ -726,7 +745,8 @@ def plot_adaptivity(result, axes=None, *, uniform=None):
     ax.set_ylabel("error estimator")
     ax.set_title(f"adaptive refinement: {n.size} meshes")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize="small")
+    # below the axes (as the history panel's): eight entries would cover the curves
+    ax.legend(fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, -0.13), ncols=2)
     tri = _triangulation(result.mesh)
     width = float(np.clip(40.0 / np.sqrt(max(result.mesh.n_triangles, 1)), 0.05, 0.6))
     (edges,) = mesh_ax.triplot(tri, color="k", linewidth=width)[:1]

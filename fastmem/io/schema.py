@@ -109,6 +109,8 @@ _ADAPTIVITY = {
     "inner": "CG iterations on this mesh",
     "solve_seconds": "wall time of SOLVE and ESTIMATE on this mesh",
     "refine_seconds": "wall time of MARK and REFINE after this mesh, moving the data included",
+    "cg_stop": "1 on an intermediate mesh whose CG could stop by its own error estimate "
+    "(its eta_alg, and eta with it, can be loose)",
 }
 
 for _name, _text in _HISTORY.items():
