@@ -42,6 +42,9 @@ refinement reaches at n = N (one uniform solve at the most threads sets the
 tolerance), timed at every thread count, ``--repeat`` rounds alternating the
 order, with its T(1)/T(k) and the final mesh (rows with ``adaptive_s``; the
 same final mesh and η at every thread count, or ``eta_mismatch``).
+``--intermediate cg bound`` runs the loop both ways, alternating within each
+round: the intermediate meshes' CGs stopped by their own error estimate (the
+default) and by the guaranteed η_alg (rows' ``intermediate``).
 ``--large N`` then solves one larger mesh once at the most threads, with
 peak memory per vertex.
 
@@ -49,6 +52,8 @@ peak memory per vertex.
                              [--scenes default manufactured]
     python -m bench.manycore --sizes 2048 --threads 16 8 4 2 1 --deadline 420 --profile
     python -m bench.manycore --sizes 1024 --threads 2 1 --repeat 3 --adaptive 2048
+    python -m bench.manycore --sizes 64 --threads 2 --repeat 4 --adaptive 2048 \
+        --intermediate cg bound
 """
 
 import cProfile
@@ -203,12 +208,18 @@ def _adaptive_scene(fm, n):
     return fm.Scene(fm.Mesh.lshape(n), mu=(1.0, 1.0), f=(-1.0, -1.0), g=0.1)
 
 
-def _adaptive_rows(n, threads, repeat, deadline, t_start):
-    """The adaptive L-shape loop to the bound of uniform n, at every thread count (docstring)."""
+def _adaptive_rows(n, threads, repeat, deadline, t_start, modes=("cg",)):
+    """The adaptive L-shape loop to the bound of uniform n, at every thread count (docstring).
+
+    ``modes``: the values of ``fastmem.adapt.loop.INTERMEDIATE_ALG`` to run, alternating
+    within each round at each thread count (``--intermediate``; the rows' ``intermediate``).
+    """
     import statistics
 
     import fastmem as fm
+    from fastmem.adapt import loop
 
+    default = loop.INTERMEDIATE_ALG
     fm.set_threads(numba=max(threads))
     t0 = time.perf_counter()
     uniform = fm.solve(_adaptive_scene(fm, n))
@@ -216,49 +227,59 @@ def _adaptive_rows(n, threads, repeat, deadline, t_start):
     tol = float(uniform.eta) * (1.0 + 1e-6)
     del uniform
     progress(f"adaptive: tolerance {tol:.4e} (uniform n={n}: {uniform_s:.2f} s)")
-    runs = {t: [] for t in threads}
+    keys = [(t, m) for t in threads for m in modes]
+    runs = {k: [] for k in keys}
     finals = {}
     order = sorted(threads, reverse=True)
-    for rnd in range(max(1, repeat)):
-        for t in order if rnd % 2 == 0 else order[::-1]:
-            done = [v for ts in runs.values() for v in ts]
-            guess = max(done) * max(threads) / t if done else uniform_s
-            if deadline and time.perf_counter() - t_start + guess > deadline:
-                progress(f"adaptive threads={t}: skipped (deadline)")
-                continue
-            fm.set_threads(numba=t)
-            t0 = time.perf_counter()
-            r = fm.solve(_adaptive_scene(fm, 8), tol=tol)
-            runs[t].append(time.perf_counter() - t0)
-            finals.setdefault(t, set()).add((r.mesh.n_vertices, float(r.eta)))
-            meshes = len(r.adaptivity["n_vertices"])
-            progress(
-                f"adaptive threads={t:2d}: {runs[t][-1]:.2f} s, {meshes} meshes, "
-                f"{r.mesh.n_vertices} vertices, eta {r.eta:.4e}"
-            )
+    try:
+        for rnd in range(max(1, repeat)):
+            for t in order if rnd % 2 == 0 else order[::-1]:
+                for m in modes if rnd % 2 == 0 else modes[::-1]:
+                    done = [v for ts in runs.values() for v in ts]
+                    guess = max(done) * max(threads) / t if done else uniform_s
+                    if deadline and time.perf_counter() - t_start + guess > deadline:
+                        progress(f"adaptive threads={t} {m}: skipped (deadline)")
+                        continue
+                    fm.set_threads(numba=t)
+                    loop.INTERMEDIATE_ALG = m
+                    t0 = time.perf_counter()
+                    r = fm.solve(_adaptive_scene(fm, 8), tol=tol)
+                    runs[(t, m)].append(time.perf_counter() - t0)
+                    finals.setdefault((t, m), set()).add((r.mesh.n_vertices, float(r.eta)))
+                    meshes = len(r.adaptivity["n_vertices"])
+                    progress(
+                        f"adaptive threads={t:2d} {m:>5}: {runs[(t, m)][-1]:.2f} s, "
+                        f"{meshes} meshes, {r.mesh.n_vertices} vertices, eta {r.eta:.4e}, "
+                        f"{int(sum(r.adaptivity['inner']))} CG iterations"
+                    )
+    finally:
+        loop.INTERMEDIATE_ALG = default
     rows = []
-    for t in threads:
-        if not runs[t]:
+    for t, m in keys:
+        if not runs[(t, m)]:
             continue
-        (vertices, eta), *more = sorted(finals[t])
+        (vertices, eta), *more = sorted(finals[(t, m)])
         row = {
             "adaptive_n": n,
             "threads": t,
+            "intermediate": m,
             "tol": tol,
             "uniform_s": uniform_s,
-            "adaptive_s": runs[t][0],
-            "adaptive_all_s": runs[t],
-            "adaptive_median_s": statistics.median(runs[t]),
+            "adaptive_s": runs[(t, m)][0],
+            "adaptive_all_s": runs[(t, m)],
+            "adaptive_median_s": statistics.median(runs[(t, m)]),
             "final_vertices": vertices,
             "eta": eta,
         }
-        if more or any(f != finals[t] for f in finals.values()):
-            row["eta_mismatch"] = sorted(set().union(*finals.values()))
+        same_mode = [f for (_, mode), f in finals.items() if mode == m]
+        if more or any(f != finals[(t, m)] for f in same_mode):
+            row["eta_mismatch"] = sorted(set().union(*same_mode))
         rows.append(row)
-    base = {r["threads"]: r for r in rows}
-    if 1 in base:
-        for r in rows:
-            r["adaptive_speedup_median"] = base[1]["adaptive_median_s"] / r["adaptive_median_s"]
+    base = {(r["threads"], r["intermediate"]): r for r in rows}
+    for r in rows:
+        one = base.get((1, r["intermediate"]))
+        if one is not None:
+            r["adaptive_speedup_median"] = one["adaptive_median_s"] / r["adaptive_median_s"]
     return rows
 
 
@@ -273,6 +294,7 @@ def run(
     scenes=("default",),
     repeat=1,
     adaptive=None,
+    intermediate=("cg",),
 ):
     import numba
 
@@ -376,7 +398,7 @@ def run(
             )
         del mesh
     if adaptive:
-        rows += _adaptive_rows(adaptive, threads, repeat, deadline, t_start)
+        rows += _adaptive_rows(adaptive, threads, repeat, deadline, t_start, tuple(intermediate))
     if large:
         fm.set_threads(numba=max(threads))
         if deadline:
@@ -423,6 +445,14 @@ def main(argv=None):
     p.add_argument(
         "--adaptive", type=int, default=None, help="adaptive L-shape to the eta of uniform n"
     )
+    p.add_argument(
+        "--intermediate",
+        nargs="+",
+        default=["cg"],
+        choices=["cg", "bound"],
+        help="adaptive: what stops the intermediate meshes' CGs (fastmem.adapt.loop."
+        "INTERMEDIATE_ALG); two values alternate in each round",
+    )
     args = parse(p, argv)
     sizes = args.sizes or (QUICK_SIZES if args.quick else FULL_SIZES)
     most = numba.config.NUMBA_NUM_THREADS
@@ -439,6 +469,7 @@ def main(argv=None):
             "deadline": args.deadline,
             "large": args.large,
             "adaptive": args.adaptive,
+            "intermediate": list(args.intermediate),
             "quick": args.quick,
             "numba_num_threads": most,
             "schedule": "one process; thread counts from the most to the fewest; per count "
@@ -457,6 +488,7 @@ def main(argv=None):
             tuple(args.scenes),
             args.repeat,
             args.adaptive,
+            args.intermediate,
         ),
     }
     finish("manycore", payload, args.quick)

@@ -192,8 +192,13 @@ def test_threads_results_identical(quick):
 def test_manycore_repeats_alternate_and_agree(tmp_path):
     """--repeat 2: every row has its two solves, medians, the product ceiling, and the
     same eta in every solve (the bits do not depend on the thread count); with
-    --adaptive, the adaptive loop's rows likewise (one final mesh, its speed-ups)."""
-    res = _run(["bench.manycore", "--quick", "--repeat", "2", "--adaptive", "32"], tmp_path)
+    --adaptive, the adaptive loop's rows likewise (one final mesh, its speed-ups), for
+    each --intermediate mode."""
+    res = _run(
+        ["bench.manycore", "--quick", "--repeat", "2", "--adaptive", "32"]
+        + ["--intermediate", "cg", "bound"],
+        tmp_path,
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     rows = json.loads((tmp_path / "manycore_quick.json").read_text())["rows"]
     solved = [r for r in rows if "solve_s" in r]
@@ -214,12 +219,15 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
     assert "solve_s" not in user[0]
     adaptive = [r for r in rows if "adaptive_s" in r]
     assert {r["threads"] for r in adaptive} == {r["threads"] for r in solved}
+    assert {r["intermediate"] for r in adaptive} == {"cg", "bound"}
     for r in adaptive:
         assert len(r["adaptive_all_s"]) == 2, r
         assert "eta_mismatch" not in r, r
         assert r["eta"] <= r["tol"], r
         assert "solve_s" not in r
-    assert len({(r["final_vertices"], r["eta"]) for r in adaptive}) == 1, adaptive
+    for mode in ("cg", "bound"):
+        finals = {(r["final_vertices"], r["eta"]) for r in adaptive if r["intermediate"] == mode}
+        assert len(finals) == 1, adaptive
     # the speed-ups against one thread, on every row (the report's T1/Tk)
     assert all(r["adaptive_speedup_median"] > 0 for r in adaptive)
 
