@@ -164,6 +164,11 @@ def solve_levels(
     is the chain of ``scene``'s mesh.  None: a chain of this solve's own.
     """
     levels = _chain(scene, options, init, timings)
+    # the coarser Laplacians are attached to the chain only where a geometric multigrid
+    # may use them: a level of this solve that takes it, or a chain handed in (the
+    # adaptive loop's, whose later meshes grow); a default run (n = 128) takes none
+    attach = transfers is not None or options.inner.multigrid == "geometric"
+    attach = attach or levels[-1].mesh.interior_vertices.size >= GEOMETRIC_MIN_UNKNOWNS
     # interior interpolations of the chain so far, finest first
     transfers = [] if transfers is None else transfers
     rows = new_history()
@@ -187,7 +192,8 @@ def solve_levels(
                 if keeps_chain(options, sc):
                     # this level's interpolation joins those of the coarser levels, with
                     # the coarser Laplacian that its multigrid's coarse operator is
-                    attach_laplacian(options, link, coarse)
+                    if attach:
+                        attach_laplacian(options, link, coarse)
                     transfers.insert(0, link)
                     prolongation, used = _multigrid(options, sc, transfers)
                 else:  # "algebraic": the decoupled CG's two-grid cycle only

@@ -224,3 +224,17 @@ def test_adaptive_loop_uses_the_attached_laplacians(monkeypatch):
     assert with_ops.mesh.n_vertices == without.mesh.n_vertices
     np.testing.assert_allclose(with_ops.u1, without.u1, rtol=0, atol=1e-9)
     assert with_ops.eta == pytest.approx(without.eta, rel=1e-9)
+
+
+def test_a_solve_without_geometric_multigrid_attaches_nothing(monkeypatch):
+    """A default run's mesh (no level reaches the geometric multigrid) assembles no operator."""
+    from fastmem.solver import levels
+
+    calls = []
+    monkeypatch.setattr(levels, "attach_coarse_operator", lambda p, a: calls.append(p.shape))
+    scene = fm.Scene(fm.Mesh.square(128), mu=(1.0, 1.0), f=(-1.0, 1.0), g=0.1)
+    out = fm.solve(scene)
+    assert len(out.parameters["solver"]["levels"]) >= 3  # nested iteration ran
+    assert calls == []
+    fm.solve(scene, multigrid="geometric")  # the same mesh with the geometric multigrid
+    assert len(calls) >= 2
