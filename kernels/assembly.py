@@ -8,6 +8,11 @@ that owns vertex ``a``, which visits the triangles of the patch of ``a``
 ``patch_local`` through the position map of :mod:`.sparsity`.  The result is
 bitwise independent of the thread count.
 
+Meshes of fewer than :data:`fastmem.kernels.topology.NUMPY_BELOW` triangles
+assemble the stiffness and mass matrices with NumPy (:func:`stiffness_csr`,
+:func:`mass_csr`): the same operations in the same order, so the same bits, and
+no kernel compiled for a small first run.
+
 Each kernel is a serial Numba loop over an index range (``_name_range(lo, hi,
 ...)``) run in chunks by Python threads (:mod:`._par`), not a ``prange``
 loop: the same arithmetic, a fraction of the compile time.
@@ -17,6 +22,7 @@ import numpy as np
 
 from ._jit import jit
 from .pool import parallel_for
+from .topology import _small
 
 __all__ = [
     "area2_and_diameter2",
@@ -302,8 +308,18 @@ def stiffness_csr(
     size (M, 3, 3) is stored.  Same arithmetic as :func:`stiffness_local`.
 
     Threading: parallel over rows; row ``a`` is written only by its owner.
+    Small meshes: :func:`_csr_numpy`, the same bits.
     """
     n = patch_ptr.shape[0] - 1
+    if _small(triangles.shape[0]):
+        return _csr_numpy(
+            _stiffness_rows(vertices, triangles, coef),
+            indptr,
+            offsets,
+            patch_ptr,
+            patch_triangles,
+            patch_local,
+        )
     data = np.zeros(indptr[n])
     parallel_for(
         _stiffness_csr_range,
@@ -365,6 +381,10 @@ def _stiffness_csr_range(
 def mass_csr(areas, coef, indptr, offsets, patch_ptr, patch_triangles, patch_local):
     """Consistent P1 mass straight into CSR data (fused kernel and gather, as stiffness_csr)."""
     n = patch_ptr.shape[0] - 1
+    if _small(areas.shape[0]):
+        return _csr_numpy(
+            _mass_rows(areas, coef), indptr, offsets, patch_ptr, patch_triangles, patch_local
+        )
     data = np.zeros(indptr[n])
     parallel_for(
         _mass_csr_range,
@@ -394,3 +414,39 @@ def _mass_csr_range(
             c = (coef[0] if const else coef[t]) * areas[t] / 12.0
             for j in range(3):
                 data[base + offsets[t, i, j]] += 2.0 * c if j == i else c
+
+
+def _stiffness_rows(vertices, triangles, coef):
+    """Local stiffness matrices (M, 3, 3), with :func:`_stiffness_csr_range`'s operations."""
+    x = vertices[triangles, 0]
+    y = vertices[triangles, 1]
+    ex = x[:, [2, 0, 1]] - x[:, [1, 2, 0]]  # edge i opposite vertex i: e0 = x2 - x1, ...
+    ey = y[:, [2, 0, 1]] - y[:, [1, 2, 0]]
+    area2 = ex[:, 2] * (-ey[:, 1]) - (-ex[:, 1]) * ey[:, 2]
+    c = coef[0] if coef.shape[0] == 1 else coef
+    s = c / (2.0 * area2)
+    return s[:, None, None] * (ex[:, :, None] * ex[:, None, :] + ey[:, :, None] * ey[:, None, :])
+
+
+def _mass_rows(areas, coef):
+    """Local mass matrices (M, 3, 3), with :func:`_mass_csr_range`'s operations."""
+    # (the kernel's "/ 12.0" compiles to a product with the reciprocal: fastmath "arcp")
+    c = (coef[0] if coef.shape[0] == 1 else coef) * areas * (1.0 / 12.0)
+    local = np.repeat(c, 9).reshape(-1, 3, 3)
+    local[:, [0, 1, 2], [0, 1, 2]] = 2.0 * c[:, None]
+    return local
+
+
+def _csr_numpy(local, indptr, offsets, patch_ptr, patch_triangles, patch_local):
+    """Sum the local matrices' rows into CSR data as the fused kernels do.
+
+    Row ``a`` adds row ``patch_local[p]`` of triangle ``patch_triangles[p]`` for
+    ``p`` in its patch, in that order: ``np.bincount`` sums in the order of its
+    input, so every entry is the same sum, term for term, as the kernel's.
+    """
+    n = patch_ptr.shape[0] - 1
+    owner = np.repeat(np.arange(n, dtype=np.int64), np.diff(patch_ptr))
+    t = patch_triangles.astype(np.int64)
+    i = patch_local.astype(np.int64)
+    positions = indptr[owner].astype(np.int64)[:, None] + offsets[t, i, :]
+    return np.bincount(positions.ravel(), weights=local[t, i, :].ravel(), minlength=int(indptr[n]))

@@ -78,6 +78,7 @@ races, and the result does not depend on the number of threads.
 import functools
 
 import numpy as np
+from numba import types as _nt
 
 from . import pool as _par
 from ._jit import jit
@@ -1927,8 +1928,10 @@ def precompile(part: str) -> None:
     ``part``: ``"patches"`` (the patch kernel and its callees, the bulk of the
     compile time, constant tensions), ``"weighted"`` (the patch kernel for
     per-triangle tensions), ``"solvers"`` (the largest callee of the first),
-    ``"coefficients"`` (the coefficient pass and the vertex colouring) or
-    ``"estimators"``.  The kernels are
+    ``"coefficients"`` (the coefficient pass and the vertex colouring),
+    ``"estimators"`` or ``"callees"`` (the first large callee the patch kernel's
+    typing meets, :func:`fastmem.kernels.rt1.rt1_local_xy`, compiled for the
+    argument types the patch kernel passes, :func:`_callee_signatures`).  The kernels are
     called on empty ranges with arrays of exactly the types
     :func:`fastmem.estimators.flux.reconstruct` and :func:`fastmem.estimators.bound.flux_terms` pass
     (read-only mesh arrays, 32-bit topology), so the code compiled here is the
@@ -1972,6 +1975,9 @@ def precompile(part: str) -> None:
             1,
             np.full(1, -1, dtype=np.int32),
         )
+    elif part == "callees":
+        for dispatcher, signature in _callee_signatures():
+            dispatcher.compile(signature)
     elif part == "solvers":
         a = np.zeros((0, 3))
         cstart = np.zeros(0, dtype=np.int64)
@@ -1999,9 +2005,23 @@ def precompile(part: str) -> None:
         )
     else:
         raise ValueError(
-            "part must be 'patches', 'weighted', 'solvers', 'coefficients' or 'estimators', "
+            "part must be 'patches', 'weighted', 'solvers', 'callees', 'coefficients' or "
+            "'estimators', "
             f"got {part!r}"
         )
+
+
+def _callee_signatures():
+    """Callees of the patch kernel for part ``"callees"``, with the argument types it passes.
+
+    Written out, because they take scalars and work arrays of the patch kernel (no
+    call from Python could type them the same way without computing);
+    tests/cli/test_coldstart.py checks that the patch kernel compiles no other
+    specialisation of them.
+    """
+    f8, i8 = _nt.float64, _nt.int64
+    a2, a3 = _nt.Array(f8, 2, "C"), _nt.Array(f8, 3, "C")
+    return [(rt1_local_xy, (f8,) * 6 + (i8,) * 3 + (f8, a2, a2, a3))]
 
 
 def _patch_runner(order, inputs, chi_row, chi_mom, classes):

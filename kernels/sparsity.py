@@ -22,12 +22,18 @@ pattern either way.
 
 :func:`csr_transpose`: the transpose of a CSR matrix in column blocks, for the
 restrictions of the geometric multigrid on many cores.
+
+Meshes of fewer than :data:`fastmem.kernels.topology.NUMPY_BELOW` triangles take
+NumPy paths (one sort of the entry keys; a binary search of every local entry):
+the same arrays, and no kernel compiled for them (about 1 s of the first run
+after an install, against a few milliseconds of run time at 32,768 triangles).
 """
 
 import numpy as np
 
 from ._jit import jit
 from .pool import n_threads, parallel_for, ranges, run_ranges
+from .topology import _small
 
 __all__ = ["csr_pattern", "csr_transpose", "position_map", "precompile_blocks"]
 
@@ -282,7 +288,7 @@ def precompile_blocks(n, edges, index_dtype) -> None:
         _sorted_pattern(int(n), edges, index_dtype, 2, grain=1)
 
 
-def csr_pattern(n, edges, index_dtype):
+def csr_pattern(n, edges, index_dtype, n_triangles=None):
     """CSR pattern (indptr, indices) of the P1 vertex graph with sorted columns.
 
     Parameters
@@ -294,12 +300,17 @@ def csr_pattern(n, edges, index_dtype):
         threads build the pattern, else a serial pass.
     index_dtype : numpy dtype
         int32 or int64, the dtype of ``indptr`` and ``indices``.
+    n_triangles : int, optional
+        Triangles of the mesh: a small mesh takes the NumPy path
+        (:func:`_csr_pattern_numpy`).  Without it the kernels build the pattern.
 
     Returns
     -------
     indptr : ndarray, shape (n + 1,)
     indices : ndarray, shape (n + 2 E,)
     """
+    if n_triangles is not None and _small(n_triangles):
+        return _csr_pattern_numpy(int(n), edges, index_dtype)
     threads = n_threads()
     if (
         threads >= BLOCK_THREADS
@@ -333,9 +344,36 @@ def position_map(triangles, indptr, indices):
         the entry (row ``triangles[t, i]``, column ``triangles[t, j]``).
     """
     m = triangles.shape[0]
+    if _small(m):
+        return _position_map_numpy(triangles, indptr, indices)
     offsets = np.empty((m, 3, 3), dtype=np.uint16)
     parallel_for(_position_map_range, m, triangles, indptr, indices, offsets)
     return offsets
+
+
+def _csr_pattern_numpy(n, edges, index_dtype):
+    """:func:`csr_pattern` by one sort of the keys ``row * n + column`` of every entry."""
+    diagonal = np.arange(n, dtype=np.int64)
+    p = edges[:, 0].astype(np.int64)
+    q = edges[:, 1].astype(np.int64)
+    keys = np.concatenate((diagonal * (n + 1), p * n + q, q * n + p))
+    keys.sort()
+    rows, columns = np.divmod(keys, max(n, 1))
+    indptr = np.zeros(n + 1, dtype=index_dtype)
+    np.cumsum(np.bincount(rows, minlength=n), out=indptr[1:])
+    return indptr, columns.astype(index_dtype)
+
+
+def _position_map_numpy(triangles, indptr, indices):
+    """:func:`position_map` by a binary search of every local entry's key among the rows'."""
+    n = indptr.shape[0] - 1
+    starts = indptr[:-1].astype(np.int64)
+    counts = np.diff(indptr).astype(np.int64)
+    keys = np.repeat(np.arange(n, dtype=np.int64) * n, counts) + indices
+    t = triangles.astype(np.int64)
+    rows = t[:, :, None]
+    wanted = rows * n + t[:, None, :]  # (M, 3, 3): row t[i], column t[j]
+    return (np.searchsorted(keys, wanted) - starts[rows]).astype(np.uint16)
 
 
 @jit

@@ -42,7 +42,9 @@ COUNT_CAP = 127
 #: Meshes of fewer triangles take NumPy paths that give the same arrays (vectorised
 #: sorts and counts): on them the kernels' compile time (about 2 s for the eight
 #: kernels, on the first run after an install) is far above their run time (a few
-#: milliseconds either way at 32,768 triangles, the default ``fastmem run``).
+#: milliseconds either way at 32,768 triangles, the default ``fastmem run``).  The
+#: P1 pattern, its position map and the stiffness and mass matrices follow the same
+#: threshold (:mod:`fastmem.kernels.sparsity`, :mod:`fastmem.kernels.assembly`).
 NUMPY_BELOW = 65536
 
 

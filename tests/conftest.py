@@ -69,6 +69,7 @@ SLOW = {
     "package/test_examples.py::test_example[gallery]": 16.1,  # every figure of docs/gallery.md
     "package/test_scaling.py::test_merge_keeps_the_other_sizes_and_refits": 12.2,
     "cli/test_coldstart.py::test_cold_run_with_helper_matches_in_process_solve": 8.9,
+    "cli/test_coldstart.py::test_callees_part_compiles_the_patch_kernels_own_specialisation": 7.0,
     # a fresh process: warm_up(adaptive=True), then a solve to a tolerance past 65,536
     # triangles (fast siblings: the helper's parts and refine.precompile's specialisations)
     "cli/test_coldstart.py::test_adaptive_warm_up_covers_the_loop": 6.0,

@@ -13,13 +13,19 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_python(script: str) -> str:
+def run_python(script: str, env: dict | None = None) -> str:
     """Run ``script`` with this interpreter in a new process; return its stdout.
 
     The process must exit with 0 (its stderr is the assertion message otherwise).
+    ``env``: variables added to this process's environment.
     """
     res = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, timeout=600, check=False
+        [sys.executable, "-c", script],
+        env=None if env is None else {**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
     )
     assert res.returncode == 0, res.stderr[-3000:]
     return res.stdout

@@ -17,8 +17,9 @@ is its largest part (about 40 % of a first ``fastmem run``'s).  With an empty
 cache and a second core, :func:`warm_up` therefore compiles that kernel (with
 the coefficient pass and the vertex colouring) in a helper process (it lands
 in Numba's on-disk cache) while it compiles everything else itself, starting
-with the patch kernel's largest callee, which the helper then loads from the
-cache (if it gets there first, both compile them: slower, same result).
+with two of the patch kernel's callees (the first its typing meets, then the
+largest), which the helper then loads from the cache (if it gets there first,
+both compile them: slower, same result).
 ``fastmem run`` starts the helper before it builds its mesh.  The tiny
 solve waits for the helper only when it reaches the flux reconstruction,
 until the kernel it needs is in the cache (a helper asked for both patch
@@ -49,9 +50,9 @@ from numba.core.dispatcher import Dispatcher
 from .. import kernels
 from ..errors import ParameterError, checked_keywords
 from ..estimators.flux import band_plan, find_patch_classes, flux_norms, reconstruct
-from ..fem.assembly import assemble_stiffness
+from ..fem.assembly import assemble_mass, assemble_stiffness
 from ..fem.scene import Scene
-from ..kernels import assembly, flux, rows, sparsity, sums, topology
+from ..kernels import flux, rows, sparsity, sums, topology
 from ..kernels import flux as _kflux
 from ..linalg import gmg
 from ..linalg.amg import precompile
@@ -185,8 +186,8 @@ def kernels_cached(which: str = "pipeline") -> bool | None:
         if which == "all":
             kernels = [d for d in _dispatchers() if d._can_compile]
         else:
-            # (no mesh-topology kernel: small meshes build their topology with NumPy)
-            kernels = [flux._reconstruct_chunk, flux._reduced_solve2, assembly._stiffness_csr_range]
+            # (no mesh-topology or assembly kernel: small meshes build them with NumPy)
+            kernels = [flux._reconstruct_chunk, flux._reduced_solve2, flux._coefficients_chunk]
         return all(_cached(d) for d in kernels)
     except Exception:  # noqa: BLE001 - private Numba layout, any failure means "unknown"
         return None
@@ -204,10 +205,10 @@ def _cpus() -> int:
 
 
 #: Python code the helper process runs (a module run with -m would be imported twice)
-#: (the bound's contact terms first: meanwhile the caller compiles the largest
-#: callee of the patch kernel, which the helper then finds in the cache; should
-#: the patch kernel's typing reach them first, it waits for them, up to 5 s after
-#: the helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
+#: (the bound's contact terms first: meanwhile the caller compiles two callees of
+#: the patch kernel, which the helper then finds in the cache; should the patch
+#: kernel's typing reach them first, it waits for them, up to 5 s after the
+#: helper's start: on a loaded machine both compiled them, 1.6 s more CPU).  It
 #: imports ``fastmem.kernels`` (numpy and numba only) without running
 #: ``fastmem/__init__.py``, whose imports (scipy, h5py, pyamg, the whole API: 0.35 s)
 #: the helper does not need; argv: the folders of ``fastmem`` and of its kernels, then
@@ -256,7 +257,8 @@ def after_the_caller(dispatcher):
 
 
 try:
-    after_the_caller(flux._reduced_solve2)
+    for callee in (flux.rt1_local_xy, flux._reduced_solve2):
+        after_the_caller(callee)
 except Exception:  # another Numba cache layout: compile them here if they are not there
     pass
 # the bound's contact terms while the caller compiles the solvers and the coefficient
@@ -298,10 +300,13 @@ def start_compile_helper(parts: tuple[str, ...] = ("patches",)) -> bool:
     _helper = spawn_compile_helper(*parts)
     if _helper is None:
         return False
-    # the patch kernel's largest callee, here, while the helper imports the kernels
-    # and compiles the bound's contact terms: it then loads it from the cache; and the
-    # flux's coefficient pass, so that the helper's share (the patch kernel, 5.4 s)
-    # ends about when this process needs it (it had waited 3 s for the helper)
+    # two of the patch kernel's callees here, in the order its typing meets them,
+    # while the helper imports the kernels and compiles the bound's contact terms: it
+    # then loads them from the cache; and the flux's coefficient pass, so that the
+    # helper's share (the rest of the patch kernel, about 4.5 s) ends about when this
+    # process needs it (measured: the caller waits 0.1-0.4 s; the local matrices'
+    # callee, 0.6-0.9 s, moved here once small meshes stopped compiling the assembly)
+    flux.precompile("callees")
     flux.precompile("solvers")
     flux.precompile("coefficients")
     return True
@@ -444,7 +449,7 @@ def _precompile_masked() -> None:
 
 
 def _precompile_topology(edges: bool = True) -> None:
-    """Compile the mesh-topology kernels (meshes of 65,536 triangles and more), and the pattern's.
+    """Compile the mesh-topology and assembly kernels (meshes of 65,536 triangles and more).
 
     Smaller meshes build their topology with NumPy
     (:data:`fastmem.kernels.topology.NUMPY_BELOW`), so the tiny solves never reach
@@ -454,13 +459,18 @@ def _precompile_topology(edges: bool = True) -> None:
     the edge numbering of a mesh built from scratch (an adaptive loop's meshes).
     """
     base = Mesh.square(4)
+    if not edges:  # (Mesh.square would compile the rows kernel of the structured triangles)
+        mesh = Mesh(base.vertices.copy(), base.triangles.copy(), validate=False)
+        _ = mesh.edges  # (by NumPy, outside the block: a refined mesh has its parent's)
     with topology.kernel_paths():
         if edges:
             mesh = Mesh.square(4)
             _ = mesh.edges
-        else:  # (Mesh.square would compile the rows kernel of the structured triangles)
-            mesh = Mesh(base.vertices.copy(), base.triangles.copy(), validate=False)
         _ = mesh.lumped_mass, mesh.patch_ptr, mesh.patch_triangles
+        # the P1 pattern, position map, stiffness and mass kernels (smaller meshes
+        # assemble with NumPy, kernels.assembly)
+        assemble_stiffness(mesh)
+        assemble_mass(mesh)
     # the P1 pattern of a mesh large enough for row blocks (kernels.sparsity)
     sparsity.precompile_blocks(base.n_vertices, base.edges, np.int32)
 

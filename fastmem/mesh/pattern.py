@@ -21,7 +21,7 @@ def csr_structure(mesh):
         n = mesh.n_vertices
         nnz = n + 2 * mesh.n_edges
         index_dtype = np.int32 if nnz < np.iinfo(np.int32).max else np.int64
-        indptr, indices = _sp.csr_pattern(n, mesh.edges, index_dtype)
+        indptr, indices = _sp.csr_pattern(n, mesh.edges, index_dtype, mesh.n_triangles)
         longest = int(np.diff(indptr).max()) if n else 0  # (rows counted by the kernel)
         if longest > np.iinfo(np.uint16).max:
             raise MeshError(f"a vertex has {longest - 1} neighbours; at most 65534 are supported")

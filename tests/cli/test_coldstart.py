@@ -27,7 +27,7 @@ from fastmem.kernels import flux as kf
 from fastmem.kernels import nvb as knvb
 from fastmem.kernels import pool as _par
 from fastmem.kernels import topology as ktopology
-from fresh import compiled_after
+from fresh import compiled_after, run_python
 
 import fastmem as fm
 from fastmem.cli import warmup
@@ -37,7 +37,7 @@ from fastmem.mesh import refine
 
 def test_precompile_compiles_the_pipeline_specialisations():
     """precompile() and a real reconstruction + flux estimators share one specialisation."""
-    for part in ("solvers", "coefficients", "estimators", "patches"):
+    for part in ("callees", "solvers", "coefficients", "estimators", "patches"):
         kf.precompile(part)
     kcut.precompile()  # the helper's first part (fastmem.cli.warmup)
     x = fm.Mesh.square(6)
@@ -69,6 +69,22 @@ def test_precompile_compiles_the_pipeline_specialisations():
     assert counts["color_vertices"] == 1, counts
     # the contact terms: the helper's specialisation is the one the checks and the bound use
     assert len(kcut._contact_terms_range.signatures) == 1
+
+
+def test_callees_part_compiles_the_patch_kernels_own_specialisation(tmp_path):
+    """Part "callees" (the caller's share of the patch kernel, written-out types) compiles
+    the very specialisation the patch kernel's typing asks for: in a fresh process with
+    an empty cache, compiling the patch kernel after it adds no second one."""
+    script = (
+        "from fastmem.kernels import flux\n"
+        "flux.precompile('callees')\n"
+        "flux.precompile('patches')\n"
+        "counts = [len(d.signatures) for d, _ in flux._callee_signatures()]\n"
+        "assert counts == [1] * len(counts), counts\n"
+        "print('ok')\n"
+    )
+    out = run_python(script, env={"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
+    assert "ok" in out
 
 
 def test_precompile_refuses_an_unknown_part():
