@@ -244,7 +244,9 @@ def test_warm_up_counts_kernels():
         "print(a.compiled + a.loaded, b.compiled + b.loaded, a.seconds > 0)\n"
     )
     first, second, timed = run_python(script).split()
-    assert int(first) >= 10  # the default pipeline uses about 15 kernels
+    # the default pipeline's kernels: 6 loaded from a warm cache (their callees come with
+    # them; small meshes build their topology, pattern and matrices with NumPy)
+    assert int(first) >= 5
     assert int(second) == 0
     assert timed == "True"
 
