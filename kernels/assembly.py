@@ -10,8 +10,9 @@ bitwise independent of the thread count.
 
 Meshes of fewer than :data:`fastmem.kernels.topology.NUMPY_BELOW` triangles
 assemble the stiffness and mass matrices with NumPy (:func:`stiffness_csr`,
-:func:`mass_csr`): the same operations in the same order, so the same bits, and
-no kernel compiled for a small first run.
+:func:`mass_csr`) until the kernel is in the process
+(:func:`fastmem.kernels.topology.numpy_path`): the same operations in the same
+order, so the same bits, and no kernel compiled for a small first run.
 
 Each kernel is a serial Numba loop over an index range (``_name_range(lo, hi,
 ...)``) run in chunks by Python threads (:mod:`._par`), not a ``prange``
@@ -22,7 +23,7 @@ import numpy as np
 
 from ._jit import jit
 from .pool import parallel_for
-from .topology import _small
+from .topology import numpy_path
 
 __all__ = [
     "area2_and_diameter2",
@@ -311,7 +312,7 @@ def stiffness_csr(
     Small meshes: :func:`_csr_numpy`, the same bits.
     """
     n = patch_ptr.shape[0] - 1
-    if _small(triangles.shape[0]):
+    if numpy_path(triangles.shape[0], _stiffness_csr_range):
         return _csr_numpy(
             _stiffness_rows(vertices, triangles, coef),
             indptr,
@@ -381,7 +382,7 @@ def _stiffness_csr_range(
 def mass_csr(areas, coef, indptr, offsets, patch_ptr, patch_triangles, patch_local):
     """Consistent P1 mass straight into CSR data (fused kernel and gather, as stiffness_csr)."""
     n = patch_ptr.shape[0] - 1
-    if _small(areas.shape[0]):
+    if numpy_path(areas.shape[0], _mass_csr_range):
         return _csr_numpy(
             _mass_rows(areas, coef), indptr, offsets, patch_ptr, patch_triangles, patch_local
         )

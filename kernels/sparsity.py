@@ -24,7 +24,8 @@ pattern either way.
 restrictions of the geometric multigrid on many cores.
 
 Meshes of fewer than :data:`fastmem.kernels.topology.NUMPY_BELOW` triangles take
-NumPy paths (one sort of the entry keys; a binary search of every local entry):
+NumPy paths (one sort of the entry keys; a binary search of every local entry)
+until the kernel is in the process (:func:`fastmem.kernels.topology.numpy_path`):
 the same arrays, and no kernel compiled for them (about 1 s of the first run
 after an install, against a few milliseconds of run time at 32,768 triangles).
 """
@@ -33,7 +34,7 @@ import numpy as np
 
 from ._jit import jit
 from .pool import n_threads, parallel_for, ranges, run_ranges
-from .topology import _small
+from .topology import numpy_path
 
 __all__ = ["csr_pattern", "csr_transpose", "position_map", "precompile_blocks"]
 
@@ -302,14 +303,18 @@ def csr_pattern(n, edges, index_dtype, n_triangles=None):
         int32 or int64, the dtype of ``indptr`` and ``indices``.
     n_triangles : int, optional
         Triangles of the mesh: a small mesh takes the NumPy path
-        (:func:`_csr_pattern_numpy`).  Without it the kernels build the pattern.
+        (:func:`_csr_pattern_numpy`) while the pattern kernels it would take (the
+        serial ones, or the row blocks' from :data:`BLOCK_THREADS` threads on) are
+        not in the process.  Without it the kernels build the pattern.
 
     Returns
     -------
     indptr : ndarray, shape (n + 1,)
     indices : ndarray, shape (n + 2 E,)
     """
-    if n_triangles is not None and _small(n_triangles):
+    serial = n_threads() < BLOCK_THREADS  # (the kernel the other path would take)
+    kernel = _count_rows if serial else _block_rows_fill
+    if n_triangles is not None and numpy_path(n_triangles, kernel):
         return _csr_pattern_numpy(int(n), edges, index_dtype)
     threads = n_threads()
     if (
@@ -344,7 +349,7 @@ def position_map(triangles, indptr, indices):
         the entry (row ``triangles[t, i]``, column ``triangles[t, j]``).
     """
     m = triangles.shape[0]
-    if _small(m):
+    if numpy_path(m, _position_map_range):
         return _position_map_numpy(triangles, indptr, indices)
     offsets = np.empty((m, 3, 3), dtype=np.uint16)
     parallel_for(_position_map_range, m, triangles, indptr, indices, offsets)

@@ -52,6 +52,34 @@ def _small(m) -> bool:
     return m < NUMPY_BELOW
 
 
+#: set by :func:`numpy_paths` (tests): small meshes take the NumPy paths of the pattern
+#: and matrices even where their kernels are in the process
+_PREFER_NUMPY = False
+
+
+def numpy_path(m, kernel) -> bool:
+    """Whether a mesh of ``m`` triangles builds its P1 pattern or matrices with NumPy.
+
+    Small meshes (:data:`NUMPY_BELOW`) do, unless ``kernel`` (the Numba kernel of the
+    other path) is in the process already: then it costs no compilation and runs about
+    ten times faster (an adaptive loop after ``fastmem.warm_up(adaptive=True)``
+    assembles its small meshes with it).  Both paths give the same bits.
+    """
+    return m < NUMPY_BELOW and (_PREFER_NUMPY or not getattr(kernel, "signatures", None))
+
+
+@contextlib.contextmanager
+def numpy_paths():
+    """Within the block every mesh takes the NumPy paths, whatever its size (tests)."""
+    global NUMPY_BELOW, _PREFER_NUMPY
+    saved = NUMPY_BELOW, _PREFER_NUMPY
+    NUMPY_BELOW, _PREFER_NUMPY = 2**62, True
+    try:
+        yield
+    finally:
+        NUMPY_BELOW, _PREFER_NUMPY = saved
+
+
 @contextlib.contextmanager
 def kernel_paths():
     """Within the block every mesh takes the kernels, whatever its size.

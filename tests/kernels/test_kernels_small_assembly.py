@@ -1,8 +1,9 @@
 """The NumPy paths of small meshes' P1 pattern and matrices against the kernels, bit for bit.
 
 Meshes below :data:`fastmem.kernels.topology.NUMPY_BELOW` triangles build the CSR
-pattern, the position map and the stiffness and mass matrices with NumPy (no kernel
-compiled on a first small run); larger meshes take the kernels.  Both must give the
+pattern, the position map and the stiffness and mass matrices with NumPy while the
+kernels are not in the process (no kernel compiled on a first small run); larger
+meshes, and small ones once the kernels are in, take the kernels.  Both must give the
 same arrays, to the last bit, and the kernels must still be reached from the threshold
 on.
 """
@@ -47,8 +48,9 @@ MESHES = {
 
 
 def _both(call):
-    """``call()`` on the NumPy path and with the kernels forced."""
-    numpy_result = call()
+    """``call()`` with the NumPy paths forced and with the kernels forced."""
+    with kt.numpy_paths():
+        numpy_result = call()
     with kt.kernel_paths():
         kernel_result = call()
     return numpy_result, kernel_result
@@ -103,27 +105,57 @@ def test_stiffness_and_mass_equal_the_kernels_bit_for_bit(name, coef):
     assert total == pytest.approx(want, rel=1e-13)
 
 
-def test_the_threshold_chooses_the_path(monkeypatch):
-    """Below NUMPY_BELOW triangles no assembly kernel runs; from it on they do."""
+class _Spy:
+    """A kernel stand-in that records its calls; ``signatures`` as the real one's or empty."""
+
+    def __init__(self, kernel, name, ran, loaded):
+        self.kernel, self.name, self.ran = kernel, name, ran
+        self.signatures = kernel.signatures if loaded else []
+
+    def __call__(self, *args):
+        self.ran.append(self.name)
+        return self.kernel(*args)
+
+
+def _spy_kernels(monkeypatch, loaded):
     ran = []
-    for name in ("_position_map_range", "_count_rows"):
-        kernel = getattr(ks, name)
-        monkeypatch.setattr(ks, name, lambda *a, _k=kernel, _n=name: ran.append(_n) or _k(*a))
-    for name in ("_stiffness_csr_range", "_mass_csr_range"):
-        kernel = getattr(ka, name)
-        monkeypatch.setattr(ka, name, lambda *a, _k=kernel, _n=name: ran.append(_n) or _k(*a))
+    for module, name in (
+        (ks, "_position_map_range"),
+        (ks, "_count_rows"),
+        (ka, "_stiffness_csr_range"),
+        (ka, "_mass_csr_range"),
+    ):
+        monkeypatch.setattr(module, name, _Spy(getattr(module, name), name, ran, loaded))
     monkeypatch.setattr(ks, "BLOCK_THREADS", 10**6)  # (the serial pattern kernels)
+    return ran
+
+
+def _assemble_small():
     mesh = fm.Mesh.square(8)
     assemble_stiffness(mesh)
     assemble_mass(mesh)
+    return mesh
+
+
+ALL = {"_position_map_range", "_count_rows", "_stiffness_csr_range", "_mass_csr_range"}
+
+
+def test_small_meshes_skip_kernels_not_in_the_process(monkeypatch):
+    """Below NUMPY_BELOW triangles a kernel that is not in the process is not called (nor
+    compiled); from the threshold on it is."""
+    ran = _spy_kernels(monkeypatch, loaded=False)
+    mesh = _assemble_small()
     assert ran == []
     monkeypatch.setattr(kt, "NUMPY_BELOW", mesh.n_triangles)  # this mesh is no longer small
-    mesh = fm.Mesh.square(8)
-    assemble_stiffness(mesh)
-    assemble_mass(mesh)
-    assert set(ran) == {
-        "_position_map_range",
-        "_count_rows",
-        "_stiffness_csr_range",
-        "_mass_csr_range",
-    }
+    _assemble_small()
+    assert set(ran) == ALL
+
+
+def test_small_meshes_take_kernels_already_in_the_process(monkeypatch):
+    """A kernel in the process (compiled or loaded, e.g. by warm_up) costs no compilation
+    and runs faster: small meshes take it (an adaptive loop's early meshes)."""
+    with kt.kernel_paths():
+        _assemble_small()  # (in the process from here on, if they were not)
+    ran = _spy_kernels(monkeypatch, loaded=True)
+    _assemble_small()
+    assert set(ran) == ALL
