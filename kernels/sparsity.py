@@ -312,11 +312,11 @@ def csr_pattern(n, edges, index_dtype, n_triangles=None):
     indptr : ndarray, shape (n + 1,)
     indices : ndarray, shape (n + 2 E,)
     """
-    serial = n_threads() < BLOCK_THREADS  # (the kernel the other path would take)
-    kernel = _count_rows if serial else _block_rows_fill
-    if n_triangles is not None and numpy_path(n_triangles, kernel):
-        return _csr_pattern_numpy(int(n), edges, index_dtype)
     threads = n_threads()
+    if n_triangles is not None:  # (the kernel the other path would take, loaded or not)
+        kernel = _count_rows if threads < BLOCK_THREADS else _block_rows_fill
+        if numpy_path(n_triangles, kernel):
+            return _csr_pattern_numpy(int(n), edges, index_dtype)
     if (
         threads >= BLOCK_THREADS
         and edges.dtype in (np.int32, np.int64)
