@@ -26,7 +26,11 @@ on the structured n x n square, in one process:
    memory bandwidth of the machine bounds what a memory-bound solve gains.
 
 The row with ``user_first_s`` is the solve a user meets after the warm-up
-(``user_first_pu`` against the unit measured right after it); the rows'
+(``user_first_pu`` against the unit measured right after it), with its CPU
+seconds and minor page faults (``user_first_system_s``, ``user_first_minor_faults``;
+every solve row has ``solve_system_s`` and ``solve_minor_faults``): on the 2-core VM
+the first solve's extra time over a later one is system time, the first touch of
+its new memory (:func:`bench._common.process_times`); the rows'
 ``first_solve_in_process`` marks the first timed solve after the unit, which
 runs on memory the unit has already faulted in.  A per-thread count row
 has the seconds of every level, its Newton steps, CG iterations, multigrid
@@ -69,7 +73,9 @@ from bench._common import (
     parser,
     peak_rss_mb,
     poisson_unit,
+    process_times,
     progress,
+    times_since,
 )
 
 QUICK_SIZES = [64]
@@ -99,14 +105,19 @@ def _levels(result):
 def _one(mesh, multigrid, which):
     import fastmem as fm
 
+    cpu = process_times()
     t0 = time.perf_counter()
     r = fm.solve(_scene(mesh, which), method="inexact", multigrid=multigrid)
     solve_s = time.perf_counter() - t0
+    cpu = times_since(cpu)
     t0 = time.perf_counter()
     est = fm.estimate(_scene(mesh, which), r.u1, r.u2, r.lam)
     estimate_s = time.perf_counter() - t0
     return {
         "solve_s": solve_s,
+        "solve_user_s": cpu["user_s"],
+        "solve_system_s": cpu["system_s"],
+        "solve_minor_faults": cpu["minor_faults"],
         "estimate_s": estimate_s,
         "eta": float(r.eta),
         "eta_estimate": float(est.eta),
@@ -134,6 +145,7 @@ def _repeat_rows(rows, mesh, repeat, deadline, t_start):
     for r in rows:
         r["solve_all_s"] = [r["solve_s"]]
         r["estimate_all_s"] = [r["estimate_s"]]
+        r["solve_system_all_s"] = [r["solve_system_s"]]
     counts = sorted({r["threads"] for r in rows})
     for k in range(1, repeat):
         for t in counts if k % 2 else counts[::-1]:
@@ -146,6 +158,7 @@ def _repeat_rows(rows, mesh, repeat, deadline, t_start):
                     r["eta_mismatch"] = again["eta"]
                 r["solve_all_s"].append(again["solve_s"])
                 r["estimate_all_s"].append(again["estimate_s"])
+                r["solve_system_all_s"].append(again["solve_system_s"])
     for r in rows:
         r["solve_median_s"] = statistics.median(r["solve_all_s"])
         r["estimate_median_s"] = statistics.median(r["estimate_all_s"])
@@ -309,15 +322,21 @@ def run(
         if n == sizes[0]:
             # the solve a user meets: before the unit, whose own solves would have
             # faulted in the memory this one touches first (3 s more at n = 2048)
+            cpu = process_times()
             t0 = time.perf_counter()
             fm.solve(_scene(mesh, scenes[0]), method="inexact", multigrid=multigrids[0])
+            first_s = time.perf_counter() - t0
+            cpu = times_since(cpu)
             user = {
                 "n": n,
                 "vertices": mesh.n_vertices,
                 "threads": max(threads),
                 "multigrid": multigrids[0],
                 "scene": scenes[0],
-                "user_first_s": time.perf_counter() - t0,
+                "user_first_s": first_s,
+                "user_first_user_s": cpu["user_s"],
+                "user_first_system_s": cpu["system_s"],
+                "user_first_minor_faults": cpu["minor_faults"],
                 "peak_rss_mb": peak_rss_mb(),
             }
         # with --repeat, the unit is the median of three (it varied by 10 % between
@@ -329,7 +348,9 @@ def run(
             rows.append(user)
             progress(
                 f"n={n}: the process's first solve ({scenes[0]}, before the unit) "
-                f"{user['user_first_s']:.2f} s ({user['user_first_pu']:.2f} PU)"
+                f"{user['user_first_s']:.2f} s ({user['user_first_pu']:.2f} PU; "
+                f"{user['user_first_system_s']:.2f} s system time, "
+                f"{user['user_first_minor_faults']} minor page faults)"
             )
         progress(f"n={n}: {mesh.n_vertices} vertices, Poisson unit {pu['seconds']:.2f} s")
         product_ms = _product_ceiling(mesh, threads)
@@ -367,7 +388,8 @@ def run(
                 rows.append(row)
                 progress(
                     f"n={n} threads={t:2d} {which:12s} {mg:9s}: solve {row['solve_s']:.2f} s "
-                    f"({row['solve_pu']:.2f} PU), estimate {row['estimate_s']:.2f} s, "
+                    f"({row['solve_pu']:.2f} PU; {row['solve_system_s']:.2f} s system), "
+                    f"estimate {row['estimate_s']:.2f} s, "
                     f"eta {row['eta']:.4e}, Newton {row['n_newton']}"
                 )
         timed = [r for r in rows if r["n"] == n and "solve_s" in r]

@@ -208,6 +208,10 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
         assert r["solve_median_s"] > 0
         assert r["product_ms"] > 0
         assert "eta_mismatch" not in r, r
+        # the solve's CPU split and page faults (getrusage deltas of this solve)
+        assert len(r["solve_system_all_s"]) == 2, r
+        assert 0 <= r["solve_system_s"] and 0 <= r["solve_minor_faults"], r
+        assert 0 < r["solve_user_s"] + r["solve_system_s"], r
     by_case = {}
     for r in solved:
         by_case.setdefault((r["multigrid"], r["scene"]), set()).add(r["eta"])
@@ -217,6 +221,8 @@ def test_manycore_repeats_alternate_and_agree(tmp_path):
     assert len(user) == 1
     assert user[0]["user_first_pu"] == user[0]["user_first_s"] / user[0]["poisson_s"]
     assert "solve_s" not in user[0]
+    assert user[0]["user_first_minor_faults"] > 0  # its memory is new to the process
+    assert 0 <= user[0]["user_first_system_s"]
     adaptive = [r for r in rows if "adaptive_s" in r]
     assert {r["threads"] for r in adaptive} == {r["threads"] for r in solved}
     assert {r["intermediate"] for r in adaptive} == {"cg", "bound"}
