@@ -836,8 +836,8 @@ def _solve_on(scene, options, result, row, level, t0, chain, adapt):
 
 
 #: The adaptive chain keeps its coarsest level below this many interior vertices: coarser
-#: links are dropped (the coarsest level is factored densely, at most
-#: :data:`fastmem.linalg.gmg.COARSE_DENSE` unknowns).
+#: links are dropped (the coarsest level is factored directly, at most
+#: :data:`fastmem.linalg.gmg.COARSE_DIRECT` unknowns).
 CHAIN_MIN_UNKNOWNS = NESTED_MIN_VERTICES
 
 

@@ -21,9 +21,10 @@ smoothed prolongators, so its setup is only the coarse operators:
   interpolation ``K P`` (``K`` keeps the inactive vertices): the coarse
   spaces vanish on the active set, as the gap does, and a coarse unknown
   that the mask cuts off entirely gets a unit diagonal;
-- the coarsest level (at most :data:`COARSE_DENSE` unknowns) is factored
-  densely by Cholesky; a larger one (a chain that stopped early) gets one
-  smoothed-aggregation V-cycle of pyamg.
+- the coarsest level (at most :data:`COARSE_DIRECT` unknowns) is factored
+  by sparse LU (SuperLU, minimum degree on A + A^T, diagonal pivots); a
+  larger one (a chain that stopped early) gets one smoothed-aggregation
+  V-cycle of pyamg.
 
 The cycle is a V(1,1): a forward hybrid Gauss-Seidel sweep, the coarse
 correction, a backward sweep.  The sweeps are those of
@@ -39,7 +40,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.linalg
 import scipy.sparse as sp
 
 from ..kernels import pool as _par
@@ -51,11 +51,11 @@ from ..kernels.smooth import (
     csr_matvec_range,
     gs_hybrid_range,
 )
-from .amg import amg_preconditioner, hybrid_blocks
+from .amg import amg_preconditioner, coarse_factor, hybrid_blocks
 from .sparse import THREADED_ROWS, as_unsigned, read_only, threaded
 
 __all__ = [
-    "COARSE_DENSE",
+    "COARSE_DIRECT",
     "NestedChain",
     "NestedMG",
     "attach_coarse_operator",
@@ -63,8 +63,12 @@ __all__ = [
     "precompile",
 ]
 
-#: The coarsest level is factored densely (Cholesky) up to this many unknowns.
-COARSE_DENSE = 2000
+#: The coarsest level is factored by sparse LU (:func:`fastmem.linalg.amg.coarse_factor`)
+#: up to this many unknowns.  Until 2026-12-04 it was factored densely (Cholesky): 15-90 ms for the
+#: 1,000-1,400 interior vertices of an adaptive chain's coarsest mesh and 1.1 ms per
+#: solve, against 1.5-2.1 ms and 0.06-0.07 ms for SuperLU (2,581 unknowns: 290-440 ms
+#: against 4.5 ms), once per multigrid setup and per active-set update.
+COARSE_DIRECT = 2000
 
 
 def _canonical(a) -> sp.csr_matrix:
@@ -474,13 +478,9 @@ class NestedMG:
 
     def _factor_coarsest(self):
         coarse = self._ops[-1]
-        self._factor = self._amg = self._pinv = None
-        if coarse.shape[0] <= COARSE_DENSE:
-            dense = coarse.toarray()
-            try:
-                self._factor = scipy.linalg.cho_factor(dense, check_finite=False)
-            except np.linalg.LinAlgError:
-                self._pinv = scipy.linalg.pinv(dense)
+        self._factor = self._amg = None
+        if coarse.shape[0] <= COARSE_DIRECT:
+            self._factor = coarse_factor(coarse)
         else:
             self._amg = amg_preconditioner(threaded(coarse), dict(self.options or {}))
 
@@ -541,9 +541,7 @@ class NestedMG:
     def _coarse_solve(self, b):
         if self._amg is not None:
             return self._amg(b)
-        if self._pinv is not None:
-            return self._pinv @ b
-        return scipy.linalg.cho_solve(self._factor, b, check_finite=False)
+        return self._factor.solve(b)
 
     def _cycle(self, lev, b):
         if lev == len(self.levels):
@@ -574,7 +572,7 @@ class NestedMG:
 
     def release(self, final: bool = False):
         """Free the hierarchy (a later call builds it again); ``final``: the chain too."""
-        self.levels = self._transfer = self._factor = self._amg = self._pinv = None
+        self.levels = self._transfer = self._factor = self._amg = None
         self._ops = self._base = None
         if final:
             self.chain = NestedChain([])
