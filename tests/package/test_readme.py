@@ -161,3 +161,19 @@ def test_archive_doc_covers_every_dataset():
     missing = [g for g in GROUPS if f"`/{g}`" not in text]
     missing += [p for p in DATASETS if f"`{p.split('/')[-1]}`" not in text]
     assert missing == []
+
+
+def test_performance_section_holds_only_the_template():
+    """The generated section of docs/performance.md has the template's bullets and no
+    others: measurements written by hand go after it (``bench.report --write`` replaces
+    the whole section, so a hand-written bullet inside it would be lost)."""
+
+    def bullets(text):
+        body = text.split("<!-- begin section -->", 1)[1].split("<!-- end section -->", 1)[0]
+        return re.findall(r"^- \*\*([^*]+)\*\*", body, flags=re.M)
+
+    template = (ROOT / "bench" / "PERFORMANCE.md").read_text(encoding="utf-8")
+    page = (DOCS / "performance.md").read_text(encoding="utf-8")
+    assert bullets(template)  # the markers and bullets are there to compare
+    assert bullets(page) == bullets(template)
+    assert "## Issue 33, session by session" in page.split("<!-- end section -->", 1)[1]
