@@ -59,6 +59,7 @@ __all__ = [
     "amg_preconditioner",
     "check_amg_options",
     "coarse_factor",
+    "dense_coarse_factor",
 ]
 
 #: Default pyamg options: smoothed aggregation, symmetric strength, V(1,1) cycles
@@ -126,37 +127,6 @@ def check_amg_options(options) -> dict:
     return out
 
 
-class CoarseCholesky:
-    """Solve on the coarsest level by dense Cholesky, falling back to the pseudo-inverse.
-
-    A callable ``(A, b) -> x`` for pyamg's ``coarse_solver``: the matrix is
-    factored at the first call (``scipy.linalg.cho_factor``) and the factors
-    are kept while ``A`` is the same object.  A matrix that is not positive
-    definite (a singular coarse operator) is solved with its pseudo-inverse
-    instead, pyamg's default.  The value ``"cholesky"`` of ``amg_options
-    ["coarse_solver"]`` selects it (a fresh instance per hierarchy and update).
-    """
-
-    def __init__(self):
-        self._matrix = None
-        self._factor = None
-        self._pinv = None
-
-    def __call__(self, a, b):
-        """Return the solution of ``a x = b`` (``a`` factored on its first call)."""
-        if a is not self._matrix:
-            dense = a.toarray() if sp.issparse(a) else np.asarray(a)
-            self._matrix, self._factor, self._pinv = a, None, None
-            try:
-                self._factor = scipy.linalg.cho_factor(dense, check_finite=False)
-            except np.linalg.LinAlgError:
-                self._pinv = scipy.linalg.pinv(dense)
-        b = np.asarray(b)
-        if self._factor is not None:
-            return scipy.linalg.cho_solve(self._factor, b, check_finite=False)
-        return self._pinv @ b
-
-
 #: A coarsest operator whose LU pivots span more than this ratio (smallest to largest
 #: magnitude) is treated as singular: for a symmetric positive definite matrix the
 #: ratio is at least 1 / cond(A), so only operators beyond double precision go.
@@ -203,6 +173,29 @@ class _PseudoInverse:
         return self.pinv @ b
 
 
+class _DenseCholesky:
+    """``solve(b)`` by the dense Cholesky factors of ``a`` (``scipy.linalg.cho_factor``)."""
+
+    def __init__(self, a):
+        self.factor = scipy.linalg.cho_factor(a, check_finite=False)
+
+    def solve(self, b):
+        return scipy.linalg.cho_solve(self.factor, b, check_finite=False)
+
+
+def dense_coarse_factor(a):
+    """Dense Cholesky factors of ``a`` (an object with ``solve``).
+
+    The pseudo-inverse when ``a`` is not positive definite (a singular coarse
+    operator), pyamg's default.
+    """
+    dense = a.toarray() if sp.issparse(a) else np.asarray(a, dtype=np.float64)
+    try:
+        return _DenseCholesky(dense)
+    except np.linalg.LinAlgError:
+        return _PseudoInverse(scipy.linalg.pinv(dense))
+
+
 class CoarseDirect:
     """Solve on the coarsest level by sparse LU (:func:`coarse_factor`).
 
@@ -213,6 +206,9 @@ class CoarseDirect:
     fresh instance per hierarchy and update).
     """
 
+    #: the factorisation: ``a -> object with solve(b)``
+    factorize = staticmethod(coarse_factor)
+
     def __init__(self):
         self._matrix = None
         self._factor = None
@@ -220,8 +216,18 @@ class CoarseDirect:
     def __call__(self, a, b):
         """Return the solution of ``a x = b`` (``a`` factored on its first call)."""
         if a is not self._matrix:
-            self._matrix, self._factor = a, coarse_factor(a)
+            self._matrix, self._factor = a, self.factorize(a)
         return self._factor.solve(np.asarray(b, dtype=np.float64))
+
+
+class CoarseCholesky(CoarseDirect):
+    """:class:`CoarseDirect` with dense Cholesky factors (:func:`dense_coarse_factor`).
+
+    The value ``"cholesky"`` of ``amg_options["coarse_solver"]``; fastmem's default
+    until 2026-12-04.
+    """
+
+    factorize = staticmethod(dense_coarse_factor)
 
 
 def _coarse_solver(name):

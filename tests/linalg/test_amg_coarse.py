@@ -13,6 +13,8 @@ from fastmem.linalg.amg import (
     AMG_DEFAULTS,
     CoarseCholesky,
     CoarseDirect,
+    _DenseCholesky,
+    _PseudoInverse,
     amg_preconditioner,
     coarse_factor,
 )
@@ -32,8 +34,7 @@ def test_spd_matrix_is_solved_by_its_cholesky_factor():
     solve = CoarseCholesky()
     x = solve(a, b)
     assert_allclose(a @ x, b, rtol=0, atol=1e-12)
-    assert solve._factor is not None
-    assert solve._pinv is None
+    assert isinstance(solve._factor, _DenseCholesky)
     factor = solve._factor
     solve(a, 2 * b)
     assert solve._factor is factor  # kept for the same matrix object
@@ -47,8 +48,7 @@ def test_singular_matrix_falls_back_to_the_pseudo_inverse():
     b -= b.mean()  # in the range of a
     solve = CoarseCholesky()
     x = solve(a, b)
-    assert solve._factor is None
-    assert solve._pinv is not None
+    assert isinstance(solve._factor, _PseudoInverse)
     assert_allclose(a @ x, b, rtol=0, atol=1e-10)
     assert abs(x.mean()) < 1e-12  # the minimum-norm solution, as pyamg's default
 
